@@ -1,0 +1,150 @@
+"""The command line: parse arguments, call the library, map exceptions to exit codes (CONTRACT.md)."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import sys
+import traceback
+from pathlib import Path
+from typing import BinaryIO
+
+from ncfix import __version__
+from ncfix.config import DEVICES, PIVOTS, STRATEGIES, Options, build_options, load_config
+from ncfix.errors import NcfixError
+
+EXIT_OK, EXIT_COLLISIONS, EXIT_USAGE = 0, 1, 2
+EXIT_BROKEN_PIPE = 141  # what a shell reports for a filter whose reader went away (128 + SIGPIPE)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="ncfix",
+        description="Find and fix deposition-head collisions in 5-axis AM NC programs. "
+        "Every line ncfix does not change is written byte for byte.",
+        epilog="Every option is also a key of the TOML config (table [ncfix], '_' for '-'); the command line wins. "
+        "Exit status: 0 no collision left, 1 collisions remain, 2 usage or input error.",
+    )
+    p.add_argument("input", nargs="?", default="-", metavar="INPUT", help="NC program; '-' or nothing reads standard input")
+    p.add_argument("-o", "--output", metavar="OUTPUT", help="write here (atomically) instead of standard output")
+    p.add_argument("-c", "--config", metavar="PATH", help="TOML config (default ./ncfix.toml when it exists)")
+    p.add_argument("--machine", metavar="NAME|PATH", help="machine profile: built-in name or profile file (default ijk)")
+    p.add_argument("--head", metavar="PATH", help="deposition-head mesh (STL or OBJ)")
+    p.add_argument("--head-tip", metavar="X,Y,Z", help="nozzle tip in the head mesh (default 0,0,0)")
+    p.add_argument("--head-axis", metavar="X,Y,Z", help="head axis, tip → head, in the mesh (default 0,0,1)")
+    p.add_argument("--part", action="append", metavar="PATH", help="mold/part/fixture mesh in workpiece coordinates; repeatable")
+    p.add_argument("--standoff", metavar="MM", help="h: distance from the path point to the nozzle tip along the tool axis (default 6)")
+    p.add_argument("--pivot", choices=PIVOTS, help="rotate about the tip C (default) or about the path point P")
+    p.add_argument("--max-step", metavar="DEG", help="largest orientation change ncfix introduces between blocks (default 2)")
+    p.add_argument("--max-tilt", metavar="DEG", help="largest deviation from the programmed orientation (default 30)")
+    p.add_argument("--pitch", metavar="MM", help="voxel size (default 0.5)")
+    p.add_argument("--clearance", metavar="MM", help="extra safety margin around every body (default 0)")
+    p.add_argument("--strategy", choices=STRATEGIES, help="correction strategy (default graph)")
+    p.add_argument("--bead-radius", metavar="MM", help="radius of deposited material; 0 turns the deposit model off (default 1)")
+    p.add_argument("--tip-allowance", metavar="MM", help="bottom of the head not checked against deposit (default 1)")
+    p.add_argument("--deposit-codes", metavar="ON,OFF", help="M-codes that switch deposition on and off, e.g. M3,M5")
+    p.add_argument("--window", metavar="BLOCKS", help="motion blocks per checking window (default 2000)")
+    p.add_argument("--check", action="store_true", default=None, help="detect only: output is the input; exit 1 on collisions")
+    p.add_argument("--report", metavar="PATH", help="write the JSON report (schema 1)")
+    p.add_argument("--diff", metavar="PATH", help="write a unified diff of the changed blocks")
+    p.add_argument("--html", metavar="PATH", help="write a self-contained HTML report")
+    p.add_argument("--device", choices=DEVICES, help="where tensors live (default auto)")
+    p.add_argument("-q", "--quiet", action="store_true", default=None, help="only errors on standard error")
+    p.add_argument("-v", "--verbose", action="store_true", default=None, help="detail and tracebacks")
+    p.add_argument("--list-machines", action="store_true", help="list the built-in machine profiles and exit")
+    p.add_argument("--version", action="version", version=f"ncfix {__version__}")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    verbose = bool(args.verbose)
+    try:
+        if args.list_machines:
+            return _list_machines()
+        options = _options(args)
+        return _run(args, options)
+    except NcfixError as exc:
+        if verbose:
+            traceback.print_exc()
+        _stderr(f"ncfix: error: {exc}")
+        return exc.exit_code
+    except BrokenPipeError:
+        # The reader went away (`ncfix big.nc | head`): stop quietly, like any filter.
+        with contextlib.suppress(OSError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
+    except KeyboardInterrupt:
+        _stderr("ncfix: interrupted")
+        return 130
+
+
+def _stderr(text: str) -> None:
+    with contextlib.suppress(OSError):
+        print(text, file=sys.stderr)
+
+
+def _list_machines() -> int:
+    from ncfix.profiles import builtin_names, load_profile
+
+    for name in builtin_names():
+        profile = load_profile(name)
+        print(f"{name:22} {profile.description}")
+    return EXIT_OK
+
+
+def _options(args: argparse.Namespace) -> Options:
+    explicit = args.config is not None
+    config = load_config(Path(args.config or "ncfix.toml"), explicit)
+    cli = {
+        "machine": args.machine, "head": args.head, "head_tip": args.head_tip, "head_axis": args.head_axis,
+        "part": args.part, "standoff": args.standoff, "pivot": args.pivot, "max_step": args.max_step,
+        "max_tilt": args.max_tilt, "pitch": args.pitch, "clearance": args.clearance, "strategy": args.strategy,
+        "bead_radius": args.bead_radius, "tip_allowance": args.tip_allowance, "deposit_codes": args.deposit_codes,
+        "window": args.window, "check": args.check, "report": args.report, "diff": args.diff, "html": args.html,
+        "device": args.device, "quiet": args.quiet, "verbose": args.verbose,
+    }
+    return build_options(config, cli, where=str(args.config or "ncfix.toml"))
+
+
+def _open_input(path: str) -> BinaryIO:
+    if path == "-":
+        return sys.stdin.buffer
+    p = Path(path)
+    if p.is_dir():
+        raise NcfixError(f"cannot read '{path}': it is a folder", fix="give the NC program's file path")
+    try:
+        return open(p, "rb")
+    except FileNotFoundError:
+        raise NcfixError(f"cannot read '{path}': no such file", fix="check the path") from None
+    except OSError as exc:
+        raise NcfixError(f"cannot read '{path}': {exc.strerror}", fix="check the file's permissions") from None
+
+
+def _run(args: argparse.Namespace, options: Options) -> int:
+    from ncfix.fileio import atomic_output, atomic_write_text
+    from ncfix.pipeline import run
+
+    source = "<stdin>" if args.input == "-" else args.input
+    src = _open_input(args.input)
+    try:
+        if args.output:
+            with atomic_output(args.output) as dst:
+                report = run(src, dst, options, source)
+        else:
+            report = run(src, sys.stdout.buffer, options, source)
+            sys.stdout.buffer.flush()
+    finally:
+        if src is not sys.stdin.buffer:
+            src.close()
+    if options.report:
+        report.write_json(options.report)
+    if options.diff:
+        atomic_write_text(options.diff, report.unified_diff(source, args.output or "<stdout>"))
+    if not options.quiet:
+        from ncfix.summary import print_summary
+
+        print_summary(report, verbose=options.verbose)
+    return report.exit_code

@@ -1,0 +1,1 @@
+"""nc stage of ncfix."""

@@ -1,0 +1,277 @@
+"""Modal state: turns each line into a Block that knows where the machine words stand.
+
+Tracks G90/G91, G20/G21 (Siemens G70/G71/G700/G710, Heidenhain ``BEGIN PGM … INCH``),
+G0/G1/G2/G3, G93/G94/G95, TCP on/off per profile, extrusion (M82/M83, ``G92 E``), the
+deposit codes, and the modal rule of vector words (none → previous vector; some → the missing
+ones are 0). On G2/G3, I J K are arc centres, never tool vectors.
+"""
+
+from __future__ import annotations
+
+import math
+
+from ncfix.errors import ProgramError
+from ncfix.nc.block import Block
+from ncfix.nc.lexer import WORD_RE, code_of, parse_number
+from ncfix.profiles import Profile
+
+NAN = math.nan
+MM_PER_INCH = 25.4
+
+# G codes whose axis words are not a move to a workpiece point.
+_NON_MOTION_G = {4.0, 10.0, 28.0, 30.0, 53.0, 92.0, 28.1, 30.1, 92.1, 92.2, 92.3}
+_HEIDENHAIN_LINEAR = {"L", "LN"}
+_HEIDENHAIN_ARC = {"C", "CR", "CT", "CP"}
+
+
+def _code_key(code: str) -> tuple[str, float | str]:
+    """Normalise a profile code: 'G43.4' → ('G', 43.4); 'TRAORI' → ('KW', 'TRAORI')."""
+    code = code.strip().upper()
+    if " " in code:
+        return ("TEXT", code)
+    head, tail = code[0], code[1:]
+    try:
+        return (head, float(tail))
+    except ValueError:
+        return ("KW", code)
+
+
+class Interpreter:
+    """Feed it lines in order; it returns a :class:`Block` per line (see module docstring)."""
+
+    def __init__(self, profile: Profile, source: str = "<stdin>", deposit_codes: tuple[str, str] | None = None):
+        self.profile = profile
+        self.source = source
+        kin = profile.kinematics
+        self.letters = kin.letters
+        self.nletters = len(kin.letters)
+        self.index = {letter: i for i, letter in enumerate(kin.letters)}
+        self.vector_letters = set(kin.orientation_letters) if profile.is_vector else set()
+        self.linear_index = {self.index["X"], self.index["Y"], self.index["Z"]}
+        self.extrusion = profile.extrusion_letter
+        self.heidenhain = profile.dialect == "heidenhain"
+
+        self.words = [NAN] * self.nletters
+        if profile.is_vector:  # a vertical tool until the program says otherwise
+            for letter, value in zip(kin.orientation_letters, (0.0, 0.0, 1.0)):
+                self.words[self.index[letter]] = value
+        self.motion: int | None = 1 if self.heidenhain else None
+        self.incremental = False
+        self.inch = False
+        self.feed_mode = 94
+        self.e_relative = False
+        self.e_value = 0.0
+        self.tcp = {"always": True, "never": False}.get(profile.tcp, profile.tcp_initial)
+        self.tcp_on = [_code_key(c) for c in profile.tcp_on]
+        self.tcp_off = [_code_key(c) for c in profile.tcp_off]
+        self.deposit_codes = [_code_key(c) for c in deposit_codes] if deposit_codes else None
+        self.deposit_on: bool | None = False if deposit_codes else None
+
+    def _fail(self, lineno: int, message: str, fix: str) -> ProgramError:
+        return ProgramError(message, where=f"{self.source}:{lineno}", fix=fix)
+
+    def feed(self, lineno: int, raw: str) -> Block:
+        block = Block(lineno, raw)
+        code = code_of(raw.rstrip("\r\n"))
+        pairs = WORD_RE.findall(code)
+        if not pairs:
+            self._stamp(block)
+            return block
+
+        given: dict[int, str | None] = {}  # None: an expression ncfix cannot evaluate
+        gs: list[float] = []
+        codes: list[tuple[str, float | str]] = []
+        e_text: str | None = None
+        opaque = False
+        heidenhain_kind = None
+        heidenhain_incremental: set[int] = set()
+        for aname, avalue, addr, value in pairs:
+            if aname:
+                addr, value = aname.upper(), avalue
+                if value and not _is_plain_number(value):
+                    if addr in self.index:
+                        opaque = True
+                        given[self.index[addr]] = None
+                    continue
+            else:
+                addr = addr.upper()
+            if addr == "G":
+                try:
+                    gs.append(parse_number(value))
+                except ValueError:
+                    pass
+                continue
+            if self.heidenhain and heidenhain_kind is None and not value and (
+                    addr in _HEIDENHAIN_LINEAR or addr in _HEIDENHAIN_ARC or addr == "CC"):
+                heidenhain_kind = addr
+                continue
+            idx = self.index.get(addr)
+            if idx is None and self.heidenhain and len(addr) == 2 and addr[0] == "I" and addr[1:] in self.index:
+                idx = self.index[addr[1:]]
+                heidenhain_incremental.add(idx)
+            if idx is not None:
+                if value and value.lstrip("+- \t")[:1] in ("#", "[", "Q"):
+                    opaque = True
+                    given[idx] = None
+                else:
+                    given[idx] = value
+                continue
+            if addr == self.extrusion:
+                e_text = value
+                continue
+            if value:
+                try:
+                    codes.append((addr, parse_number(value)))
+                except ValueError:
+                    pass
+            else:
+                codes.append(("KW", addr))
+
+        # -- modal codes, in the order a controller applies them ---------------------------
+        g92 = False
+        non_motion = False
+        for g in gs:
+            if g in (0.0, 1.0, 2.0, 3.0):
+                self.motion = int(g)
+            elif g == 80.0:
+                self.motion = None
+            elif 81.0 <= g <= 89.0:
+                self.motion = None  # canned cycles: not re-oriented by ncfix
+            elif g == 90.0:
+                self.incremental = False
+            elif g == 91.0:
+                self.incremental = True
+            elif g in (20.0, 70.0, 700.0):
+                self.inch = True
+            elif g in (21.0, 71.0, 710.0):
+                self.inch = False
+            elif g in (93.0, 94.0, 95.0):
+                self.feed_mode = int(g)
+            if g == 92.0:
+                g92 = True
+            if g in _NON_MOTION_G:
+                non_motion = True
+            self._switch(("G", g))
+        for key in codes:
+            if key == ("M", 82.0):
+                self.e_relative = False
+            elif key == ("M", 83.0):
+                self.e_relative = True
+            self._switch(key)
+        if self.heidenhain:
+            upper = code.upper()
+            if "BEGIN PGM" in upper:
+                self.inch = upper.rstrip().endswith("INCH")
+            if "FUNCTION" in upper:
+                text = " ".join(upper.split())
+                self._switch(("TEXT", text[text.index("FUNCTION"):]))
+            if heidenhain_kind in _HEIDENHAIN_LINEAR:
+                self.motion = 0 if "FMAX" in upper else 1
+            elif heidenhain_kind in _HEIDENHAIN_ARC:
+                self.motion = 2
+            elif heidenhain_kind == "CC" or heidenhain_kind is None:
+                non_motion = True
+
+        # -- extrusion ----------------------------------------------------------------------
+        if e_text is not None:
+            try:
+                e = parse_number(e_text)
+            except ValueError:
+                e = None
+            if e is not None:
+                if g92:
+                    self.e_value = e
+                elif self.e_relative:
+                    block.e_delta = e
+                    self.e_value += e
+                else:
+                    block.e_delta = e - self.e_value
+                    self.e_value = e
+
+        # -- axis words ----------------------------------------------------------------------
+        if given:
+            arc = self.motion in (2, 3)
+            vector_given = False
+            new = self.words
+            scale = MM_PER_INCH if self.inch else 1.0
+            for idx, text in given.items():
+                letter = self.letters[idx]
+                is_vector = letter in self.vector_letters
+                if is_vector and arc:
+                    continue  # I J K on an arc are its centre
+                if text is None:
+                    new[idx] = NAN
+                    continue
+                try:
+                    value = parse_number(text)
+                except ValueError:
+                    if self.motion is not None and not non_motion:
+                        raise self._fail(lineno, f"the {letter} word '{letter}{text}' is not a number",
+                                         "correct the value in the program; ncfix never guesses a position") from None
+                    continue
+                if is_vector:
+                    vector_given = True
+                    continue
+                if idx in self.linear_index:
+                    value *= scale
+                if g92:
+                    new[idx] = value
+                elif self.incremental or idx in heidenhain_incremental:
+                    new[idx] = new[idx] + value
+                else:
+                    new[idx] = value
+            if vector_given:
+                comps = []
+                for letter in self.profile.kinematics.orientation_letters:
+                    idx = self.index[letter]
+                    text = given.get(idx, "")
+                    comps.append(NAN if text is None else parse_number(text) if text else 0.0)
+                if comps[0] == 0.0 and comps[1] == 0.0 and comps[2] == 0.0:
+                    raise self._fail(lineno, "the tool vector is (0, 0, 0)",
+                                     "give a non-zero vector; a vertical tool is 0, 0, 1")
+                for letter, value in zip(self.profile.kinematics.orientation_letters, comps):
+                    new[self.index[letter]] = value
+            if g92 or non_motion:
+                if not g92:
+                    for idx in given:  # homing / machine-coordinate moves: position now unknown
+                        new[idx] = NAN
+            elif self.motion is not None:
+                block.motion = self.motion
+        block.opaque = opaque
+        self._stamp(block)
+        if block.motion is not None:
+            block.words = tuple(self.words)
+        return block
+
+    def _stamp(self, block: Block) -> None:
+        block.tcp = self.tcp
+        block.inch = self.inch
+        block.incremental = self.incremental
+        block.feed_mode = self.feed_mode
+        block.deposit_on = self.deposit_on
+
+    def _switch(self, key: tuple[str, float | str]) -> None:
+        if self.profile.tcp == "program":
+            if _matches(key, self.tcp_off):
+                self.tcp = False
+            elif _matches(key, self.tcp_on):
+                self.tcp = True
+        if self.deposit_codes is not None:
+            if key == self.deposit_codes[0]:
+                self.deposit_on = True
+            elif key == self.deposit_codes[1]:
+                self.deposit_on = False
+
+
+def _matches(key: tuple[str, float | str], codes: list[tuple[str, float | str]]) -> bool:
+    if key[0] == "TEXT":  # Heidenhain `FUNCTION TCPM F TCP AXIS POS` starts with the code
+        return any(c[0] == "TEXT" and str(key[1]).startswith(str(c[1])) for c in codes)
+    return key in codes
+
+
+def _is_plain_number(text: str) -> bool:
+    try:
+        parse_number(text)
+    except ValueError:
+        return False
+    return True

@@ -1,0 +1,129 @@
+"""Modal state: positions, vectors, units, increments and extrusion, read as the controller would."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from ncfix.errors import ProgramError
+from ncfix.nc.modal import Interpreter
+from ncfix.profiles import load_profile
+
+from conftest import corpus_path
+
+
+def interpret(text: str, machine: str = "ijk", **kwargs):
+    interp = Interpreter(load_profile(machine), "t.nc", **kwargs)
+    return [interp.feed(i, line) for i, line in enumerate(text.splitlines(keepends=True), start=1)]
+
+
+def motion_words(text: str, machine: str = "ijk", **kwargs):
+    return [b.words for b in interpret(text, machine, **kwargs) if b.motion is not None]
+
+
+def test_model_1_reads_as_its_34114_waypoints():
+    gcode = corpus_path("multiaxis_3dp_motionplanning", "model_1_Gcode.txt")
+    folder = corpus_path("multiaxis_3dp_motionplanning", "model_1", "waypoint")
+    expected = np.concatenate([np.loadtxt(folder / f"{i}.txt")[:, :3] for i in range(1, 18)])
+    profile = load_profile("multiaxis-3dp-bc")
+    interp = Interpreter(profile, str(gcode))
+    words = []
+    with open(gcode, "rb") as handle:
+        for lineno, raw in enumerate(handle, start=1):
+            block = interp.feed(lineno, raw.decode("latin-1"))
+            if block.motion == 1 and block.e_delta is not None and "X" in block.raw:
+                words.append(block.words)
+    p, n, _ = profile.kinematics.forward(np.array(words), tcp=False)
+    assert len(p) == 34114 == len(expected)
+    assert np.abs(p - expected).max() < 0.005
+
+
+def test_model_1_vectors_match_the_waypoint_normals_in_direction():
+    gcode = corpus_path("multiaxis_3dp_motionplanning", "model_1_Gcode.txt")
+    normals = np.loadtxt(corpus_path("multiaxis_3dp_motionplanning", "model_1", "waypoint", "1.txt"))[:, 3:]
+    profile = load_profile("multiaxis-3dp-bc")
+    interp = Interpreter(profile)
+    words = []
+    with open(gcode, "rb") as handle:
+        for lineno, raw in enumerate(handle, start=1):
+            block = interp.feed(lineno, raw.decode("latin-1"))
+            if block.motion == 1 and "X" in block.raw:
+                words.append(block.words)
+            if len(words) == len(normals):
+                break
+    _, n, _ = profile.kinematics.forward(np.array(words), tcp=False)
+    # The slicer smooths B/C, so the programmed axis stays within a few degrees of the normals.
+    angle = np.degrees(np.arccos(np.clip(np.sum(n * normals, axis=1), -1, 1)))
+    assert np.median(angle) < 3.0
+
+
+def test_vector_words_follow_the_modal_rule():
+    words = motion_words("G1 X0 Y0 Z0 I0 J0 K1\nG1 X1\nG1 X2 I1\nG1 X3 J1 K1\n")
+    vectors = [w[3:] for w in words]
+    assert vectors == [(0.0, 0.0, 1.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 1.0)]
+
+
+def test_arc_ijk_are_centres_not_vectors():
+    words = motion_words("G1 X0 Y0 Z0 I0.6 J0 K0.8\nG2 X10 Y0 I5 J0\nG1 X20\n")
+    assert [w[3:] for w in words] == [(0.6, 0.0, 0.8)] * 3
+
+
+def test_words_carry_over_and_increments_add():
+    words = motion_words("G90 G1 X1 Y2 Z3 A10 C20\nX5\nG91 X1 C-5\nG90 Y0\n", machine="table-ac")
+    # letters: X Y Z C A
+    assert words == [(1, 2, 3, 20, 10), (5, 2, 3, 20, 10), (6, 2, 3, 15, 10), (6, 0, 3, 15, 10)]
+
+
+def test_inch_programs_are_read_in_mm():
+    words = motion_words("G20 G1 X1 Y0 Z0 I0 J0 K1\n")
+    assert words[0][0] == pytest.approx(25.4)
+
+
+def test_extrusion_absolute_relative_and_g92():
+    blocks = interpret("G1 X0 Y0 Z0 E1\nG1 X1 E3\nG92 E0\nG1 X2 E0.5\nM83\nG1 X3 E0.25\nG0 X4\n")
+    deltas = [b.e_delta for b in blocks]
+    assert deltas == [1.0, 2.0, None, 0.5, None, 0.25, None]
+
+
+def test_deposit_codes_switch_state():
+    blocks = interpret("G1 X0 Y0 Z0\nM3\nG1 X1\nM5\nG1 X2\n", deposit_codes=("M3", "M5"))
+    assert [b.deposit_on for b in blocks if b.motion is not None] == [False, True, False]
+
+
+def test_tcp_switches_per_profile():
+    blocks = interpret("G1 X0 Y0 Z0 A0 C0\nM428\nG1 X1\nM429\nG1 X2\n", machine="linuxcnc-xyzac-trt")
+    assert [b.tcp for b in blocks if b.motion is not None] == [False, True, False]
+
+
+def test_homing_leaves_positions_unknown():
+    words = motion_words("G28 X0 Y0 Z230\nG0 X1 Y1\nG0 Z5\n", machine="ijk")
+    assert math.isnan(words[0][2]) and words[1][2] == 5.0
+
+
+def test_expressions_make_a_block_opaque_not_an_error():
+    blocks = interpret("G1 X#100 Y2 Z0\nG1 X=R1\n", machine="sinumerik-vector")
+    assert all(b.opaque for b in blocks)
+    assert math.isnan(blocks[0].words[0])
+
+
+@pytest.mark.parametrize("line", ["G1 X1.2.3", "G1 X", "G1 Y--5", "G0 Z.", "G1 I1 J0 K0\nG1 I0 J0 K0"])
+def test_unreadable_axis_words_on_motion_blocks_fail_naming_the_line(line):
+    with pytest.raises(ProgramError) as err:
+        interpret("G21\n" + line + "\n")
+    assert err.value.where == f"t.nc:{1 + line.count(chr(10)) + 1}"
+
+
+def test_unreadable_words_outside_motion_pass():
+    blocks = interpret("M104 S2.0.5\nG4 P1.2.3\n(X1.2.3)\n")
+    assert all(b.motion is None for b in blocks)
+
+
+def test_heidenhain_ln_blocks():
+    text = ("0 BEGIN PGM F5 MM\n6 LN X+10 Y+0 Z+25 TX+0 TY+0 TZ+1 FMAX\n"
+            "8 LN X+20 Y+0 Z+5 TX+0.258819 TY+0 TZ+0.9659258 F1200\n11 L Z+50 FMAX\n")
+    blocks = [b for b in interpret(text, machine="heidenhain-ln") if b.motion is not None]
+    assert [b.motion for b in blocks] == [0, 1, 0]
+    assert blocks[1].words == (20.0, 0.0, 5.0, 0.258819, 0.0, 0.9659258)
+    assert blocks[2].words[3:] == blocks[1].words[3:]
