@@ -127,3 +127,33 @@ def test_heidenhain_ln_blocks():
     assert [b.motion for b in blocks] == [0, 1, 0]
     assert blocks[1].words == (20.0, 0.0, 5.0, 0.258819, 0.0, 0.9659258)
     assert blocks[2].words[3:] == blocks[1].words[3:]
+
+
+EQUIVALENCE_PROGRAM = """G21 G90 G94
+G1 X1 Y2 Z3 I0 J0 K1 F1200
+X5 E1.5
+G01 X6. Y.5 Z-0. J1 E2
+G0 X7 Y8 Z9 I0.6 J0 K0.8
+G91
+G1 X1 Y-1 E0.5
+G90 G20
+G1 X1 Y1 Z1
+M83
+G1 X2 E0.1
+X1E5
+G1 X+3 Y-.25 Z1.
+"""
+
+
+@pytest.mark.parametrize("machine", ["ijk", "table-ac", "multiaxis-3dp-bc"])
+def test_plain_line_reader_agrees_with_the_full_reader(machine):
+    fast = Interpreter(load_profile(machine))
+    slow = Interpreter(load_profile(machine))
+    slow._fast_ok = False
+    text = EQUIVALENCE_PROGRAM.replace("I0.6 J0 K0.8", "I0.6 J0 K0.8" if machine == "ijk" else "A10 C20")
+    for lineno, line in enumerate(text.splitlines(keepends=True), start=1):
+        a, b = fast.feed(lineno, line), slow.feed(lineno, line)
+        assert (a.motion, a.e_delta, a.tcp, a.inch, a.incremental) == (b.motion, b.e_delta, b.tcp, b.inch, b.incremental)
+        assert (a.words is None) == (b.words is None)
+        if a.words is not None:
+            assert np.allclose(a.words, b.words, equal_nan=True), (line, a.words, b.words)

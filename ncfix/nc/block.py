@@ -5,6 +5,19 @@ from __future__ import annotations
 RAPID, LINEAR, ARC_CW, ARC_CCW = 0, 1, 2, 3
 
 
+class ModalState:
+    """The modal settings a block runs under; shared by consecutive blocks until one changes."""
+
+    __slots__ = ("tcp", "inch", "incremental", "feed_mode", "deposit_on")
+
+    def __init__(self, tcp: bool, inch: bool, incremental: bool, feed_mode: int, deposit_on: bool | None):
+        self.tcp = tcp
+        self.inch = inch
+        self.incremental = incremental
+        self.feed_mode = feed_mode
+        self.deposit_on = deposit_on  # state of --deposit-codes, None when they are not given
+
+
 class Block:
     """A line of the input. Unchanged blocks are written as ``raw``, byte for byte.
 
@@ -14,25 +27,24 @@ class Block:
     expression ncfix cannot evaluate). ``new_words`` is set by the stages that change it.
     """
 
-    __slots__ = (
-        "lineno", "raw", "motion", "words", "tcp", "opaque", "inch", "incremental",
-        "e_delta", "deposit_on", "feed_mode", "new_words", "reason",
-    )
+    __slots__ = ("lineno", "raw", "motion", "words", "state", "opaque", "e_delta", "new_words", "reason")
 
-    def __init__(self, lineno: int, raw: str):
+    def __init__(self, lineno: int, raw: str, state: ModalState):
         self.lineno = lineno
         self.raw = raw
+        self.state = state
         self.motion: int | None = None  # RAPID/LINEAR/ARC_* when the block moves, else None
         self.words: tuple[float, ...] | None = None
-        self.tcp = True
         self.opaque = False  # an axis word holds an expression (`X#1`, `X=R1`)
-        self.inch = False
-        self.incremental = False
         self.e_delta: float | None = None  # extrusion of this block, None without an E word
-        self.deposit_on: bool | None = None  # state of --deposit-codes, None when not given
-        self.feed_mode = 94
         self.new_words: tuple[float, ...] | None = None
         self.reason: str | None = None
+
+    tcp = property(lambda self: self.state.tcp)
+    inch = property(lambda self: self.state.inch)
+    incremental = property(lambda self: self.state.incremental)
+    feed_mode = property(lambda self: self.state.feed_mode)
+    deposit_on = property(lambda self: self.state.deposit_on)
 
     @property
     def changed(self) -> bool:

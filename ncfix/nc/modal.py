@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 
 from ncfix.errors import ProgramError
-from ncfix.nc.block import Block
+from ncfix.nc.block import Block, ModalState
 from ncfix.nc.lexer import WORD_RE, code_of, parse_number
 from ncfix.profiles import Profile
 
@@ -21,6 +21,8 @@ MM_PER_INCH = 25.4
 # G codes whose axis words are not a move to a workpiece point.
 _NON_MOTION_G = {4.0, 10.0, 28.0, 30.0, 53.0, 92.0, 28.1, 30.1, 92.1, 92.2, 92.3}
 _HEIDENHAIN_LINEAR = {"L", "LN"}
+_PLAIN_MOTION = {"0": 0, "00": 0, "1": 1, "01": 1}
+_NUMERIC_CHARS = str.maketrans("", "", "0123456789.+-")
 _HEIDENHAIN_ARC = {"C", "CR", "CT", "CP"}
 
 
@@ -66,16 +68,93 @@ class Interpreter:
         self.tcp_off = [_code_key(c) for c in profile.tcp_off]
         self.deposit_codes = [_code_key(c) for c in deposit_codes] if deposit_codes else None
         self.deposit_on: bool | None = False if deposit_codes else None
+        self._last_state: tuple | None = None
+        self._snapshot: ModalState | None = None
+
+        # The plain-line reader handles single-letter words of this profile and nothing else.
+        kinds = {}
+        for letter in kin.letters:
+            kinds[letter] = 1 if letter in ("X", "Y", "Z") else (2 if letter in self.vector_letters else 0)
+        self._plain_axes = tuple((letter, self.index[letter], kinds[letter]) for letter in kin.letters)
+        self._vector_order = tuple(kin.orientation_letters) if profile.is_vector else ()
+        self._vector_slot = {letter: i for i, letter in enumerate(self._vector_order)}
+        self._plain_letters = frozenset(("N", "G", "F", self.extrusion, *kin.letters))
+        self._fast_ok = profile.dialect == "iso" and all(len(letter) == 1 for letter in kin.letters)
 
     def _fail(self, lineno: int, message: str, fix: str) -> ProgramError:
         return ProgramError(message, where=f"{self.source}:{lineno}", fix=fix)
 
     def feed(self, lineno: int, raw: str) -> Block:
-        block = Block(lineno, raw)
+        if self._fast_ok:
+            block = self._feed_plain(lineno, raw)
+            if block is not None:
+                return block
+        return self._feed(lineno, raw)
+
+    def _feed_plain(self, lineno: int, raw: str) -> Block | None:
+        """The common line (`G1 X.. Y.. Z.. A.. C.. F..`, upper case, plain numbers) without the
+        regular expression; None sends anything else to :meth:`_feed`, which reads it the same way.
+        """
+        tokens = raw.split()
+        if not tokens:
+            return None
+        words_text = {t[0]: t[1:] for t in tokens}
+        if len(words_text) != len(tokens) or not words_text.keys() <= self._plain_letters:
+            return None
+        if "".join(words_text.values()).translate(_NUMERIC_CHARS):
+            return None  # letters inside a value (`X1E5`), `(`, `#`, `_`, …: the full reader
+        g = words_text.get("G")
+        motion = self.motion if g is None else _PLAIN_MOTION.get(g)
+        if motion is None or motion > 1:
+            return None
+        values = self.words
+        new = list(values)
+        moved = False
+        vector: list[float] | None = None
+        try:
+            for letter, idx, kind in self._plain_axes:
+                text = words_text.get(letter)
+                if text is None:
+                    continue
+                value = float(text)
+                moved = True
+                if kind == 2:
+                    if vector is None:
+                        vector = [0.0, 0.0, 0.0]
+                    vector[self._vector_slot[letter]] = value
+                    continue
+                if kind == 1 and self.inch:
+                    value *= MM_PER_INCH
+                new[idx] = new[idx] + value if self.incremental else value
+            e_text = words_text.get(self.extrusion)
+            e = float(e_text) if e_text is not None else None
+        except ValueError:
+            return None
+        if vector is not None:
+            if vector == [0.0, 0.0, 0.0]:
+                return None  # the full reader reports it
+            for letter, value in zip(self._vector_order, vector):
+                new[self.index[letter]] = value
+        block = Block(lineno, raw, self._state())
+        self.motion = motion
+        if e is not None:
+            if self.e_relative:
+                block.e_delta = e
+                self.e_value += e
+            else:
+                block.e_delta = e - self.e_value
+                self.e_value = e
+        if moved:
+            self.words = new
+            block.motion = motion
+            block.words = tuple(new)
+        return block
+
+    def _feed(self, lineno: int, raw: str) -> Block:
+        block = Block(lineno, raw, self._state())
         code = code_of(raw.rstrip("\r\n"))
         pairs = WORD_RE.findall(code)
         if not pairs:
-            self._stamp(block)
             return block
 
         given: dict[int, str | None] = {}  # None: an expression ncfix cannot evaluate
@@ -238,17 +317,18 @@ class Interpreter:
             elif self.motion is not None:
                 block.motion = self.motion
         block.opaque = opaque
-        self._stamp(block)
+        block.state = self._state()
         if block.motion is not None:
             block.words = tuple(self.words)
         return block
 
-    def _stamp(self, block: Block) -> None:
-        block.tcp = self.tcp
-        block.inch = self.inch
-        block.incremental = self.incremental
-        block.feed_mode = self.feed_mode
-        block.deposit_on = self.deposit_on
+    def _state(self) -> ModalState:
+        """The current modal settings, as one object shared until a setting changes."""
+        current = (self.tcp, self.inch, self.incremental, self.feed_mode, self.deposit_on)
+        if current != self._last_state:
+            self._last_state = current
+            self._snapshot = ModalState(*current)
+        return self._snapshot
 
     def _switch(self, key: tuple[str, float | str]) -> None:
         if self.profile.tcp == "program":
