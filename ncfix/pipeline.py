@@ -4,29 +4,37 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable, Iterator
+from itertools import islice
 from typing import BinaryIO, Protocol
 
 from ncfix.config import Options
 from ncfix.errors import NcfixError
-from ncfix.nc.block import Block
+from ncfix.nc.chunk import Chunk
 from ncfix.nc.modal import Interpreter
 from ncfix.nc.writer import Writer
 from ncfix.profiles import Profile, load_profile
 from ncfix.report import Report
 
+CHUNK_LINES = 4096  # lines read and interpreted together; memory is bounded by this and the window
+
 
 class Stage(Protocol):
-    """A streaming stage: takes blocks in order, gives back the blocks it is done with."""
+    """A streaming stage: takes chunks in order, gives back the chunks it is done with."""
 
-    def push(self, block: Block) -> Iterable[Block]: ...
+    def push(self, chunk: Chunk) -> Iterable[Chunk]: ...
 
-    def flush(self) -> Iterable[Block]: ...
+    def flush(self) -> Iterable[Chunk]: ...
 
 
-def read_lines(stream: BinaryIO) -> Iterator[str]:
-    """Lines of a binary stream as latin-1 text (one character per byte: lossless), ends kept."""
-    for raw in stream:
-        yield raw.decode("latin-1")
+def read_chunks(stream: BinaryIO, interpreter: Interpreter, lines_per_chunk: int = CHUNK_LINES) -> Iterator[Chunk]:
+    """The input as chunks of raw lines (bytes, ends kept), each read by the modal interpreter."""
+    lineno = 1
+    while True:
+        lines = list(islice(stream, lines_per_chunk))
+        if not lines:
+            return
+        yield interpreter.feed_chunk(lines, lineno)
+        lineno += len(lines)
 
 
 def build_stages(options: Options, profile: Profile, report: Report) -> list[Stage]:
@@ -44,29 +52,20 @@ def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>")
     interpreter = Interpreter(profile, source, options.deposit_codes)
     stages = build_stages(options, profile, report)
     writer = Writer(profile)
-    write = dst.write
-    pending: list[bytes] = []
 
-    def emit(blocks: Iterable[Block]) -> None:
-        for block in blocks:
-            report.count(block)
-            pending.append(writer.render(block).encode("latin-1"))
-            if len(pending) >= 512:
-                write(b"".join(pending))
-                pending.clear()
+    def emit(chunks: Iterable[Chunk]) -> None:
+        for chunk in chunks:
+            report.count(chunk)
+            dst.write(writer.render(chunk))
 
-    lineno = 0
-    for lineno, line in enumerate(read_lines(src), start=1):
-        blocks: Iterable[Block] = (interpreter.feed(lineno, line),)
+    for chunk in read_chunks(src, interpreter):
+        chunks: Iterable[Chunk] = (chunk,)
         for stage in stages:
-            blocks = [out for block in blocks for out in stage.push(block)]
-        emit(blocks)
-    tail: list[Block] = []
+            chunks = [out for c in chunks for out in stage.push(c)]
+        emit(chunks)
+    tail: list[Chunk] = []
     for stage in stages:
-        tail = [out for block in tail for out in stage.push(block)] + list(stage.flush())
+        tail = [out for c in tail for out in stage.push(c)] + list(stage.flush())
     emit(tail)
-    if pending:
-        write(b"".join(pending))
-    report.summary["lines"] = lineno
     report.summary["seconds"] = round(time.perf_counter() - started, 3)
     return report

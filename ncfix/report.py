@@ -10,7 +10,7 @@ from ncfix import __version__
 
 if TYPE_CHECKING:
     from ncfix.config import Options
-    from ncfix.nc.block import Block
+    from ncfix.nc.chunk import Chunk
 
 
 @dataclass
@@ -28,9 +28,9 @@ class Report:
     warnings: list[str] = field(default_factory=list)
     diff_lines: list[tuple[int, str, str]] = field(default_factory=list)  # (line, before, after)
 
-    def count(self, block: "Block") -> None:
-        if block.motion is not None:
-            self.summary["motion_blocks"] += 1
+    def count(self, chunk: "Chunk") -> None:
+        self.summary["lines"] += len(chunk)
+        self.summary["motion_blocks"] += int((chunk.motion >= 0).sum())
 
     @property
     def exit_code(self) -> int:

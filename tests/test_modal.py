@@ -145,15 +145,47 @@ G1 X+3 Y-.25 Z1.
 """
 
 
-@pytest.mark.parametrize("machine", ["ijk", "table-ac", "multiaxis-3dp-bc"])
-def test_plain_line_reader_agrees_with_the_full_reader(machine):
-    fast = Interpreter(load_profile(machine))
+def chunked(data: bytes, machine: str, size: int):
+    interp = Interpreter(load_profile(machine))
+    lines = data.splitlines(keepends=True)
+    return [interp.feed_chunk(lines[i:i + size], i + 1) for i in range(0, len(lines), size)]
+
+
+def assert_chunks_match_lines(data: bytes, machine: str, size: int):
+    """The vectorised chunk reader must read every line exactly as the line-by-line reader."""
     slow = Interpreter(load_profile(machine))
-    slow._fast_ok = False
+    lineno = 0
+    for chunk in chunked(data, machine, size):
+        for i, raw in enumerate(chunk.lines):
+            lineno += 1
+            block = slow.feed(lineno, raw.decode("latin-1"))
+            where = (machine, lineno, raw)
+            assert chunk.motion[i] == (-1 if block.motion is None else block.motion), where
+            if block.motion is not None:
+                assert np.allclose(chunk.words[i], block.words, equal_nan=True, rtol=0, atol=1e-9), where
+            assert (np.isnan(chunk.e_delta[i]) and block.e_delta is None) or np.isclose(
+                chunk.e_delta[i], block.e_delta, rtol=0, atol=1e-9), where
+            assert (chunk.tcp[i], chunk.inch[i], chunk.incremental[i], chunk.feed_mode[i], chunk.opaque[i]) == (
+                block.tcp, block.inch, block.incremental, block.feed_mode, block.opaque), where
+
+
+@pytest.mark.parametrize("machine", ["ijk", "table-ac", "multiaxis-3dp-bc"])
+@pytest.mark.parametrize("size", [4096, 9, 1])
+def test_chunk_reader_agrees_with_the_line_reader(machine, size):
     text = EQUIVALENCE_PROGRAM.replace("I0.6 J0 K0.8", "I0.6 J0 K0.8" if machine == "ijk" else "A10 C20")
-    for lineno, line in enumerate(text.splitlines(keepends=True), start=1):
-        a, b = fast.feed(lineno, line), slow.feed(lineno, line)
-        assert (a.motion, a.e_delta, a.tcp, a.inch, a.incremental) == (b.motion, b.e_delta, b.tcp, b.inch, b.incremental)
-        assert (a.words is None) == (b.words is None)
-        if a.words is not None:
-            assert np.allclose(a.words, b.words, equal_nan=True), (line, a.words, b.words)
+    assert_chunks_match_lines((text * 30).encode(), machine, size)
+
+
+@pytest.mark.heavy
+@pytest.mark.parametrize("name, machine", [
+    ("multiaxis_3dp_motionplanning/model_1_Gcode.txt", "multiaxis-3dp-bc"),
+    ("s3_deformfdm/ring_Gcode.txt", "s3-deformfdm-bc"),
+    ("linuxcnc/boat-xyzac.ngc", "linuxcnc-xyzac-trt"),
+    ("linuxcnc/boat-xyzbc.ngc", "linuxcnc-xyzbc-trt"),
+    ("linuxcnc/impeller-7bl-xyzac.ngc", "linuxcnc-xyzac-trt"),
+    ("linuxcnc/xyzab-tdr-demo.ngc", "ijk"),
+])
+def test_chunk_reader_agrees_on_the_corpus(name, machine):
+    data = corpus_path(*name.split("/")).read_bytes()
+    assert_chunks_match_lines(data, machine, 4096)
+    assert_chunks_match_lines(data[:200_000], machine, 37)

@@ -11,8 +11,12 @@ from __future__ import annotations
 import math
 
 from ncfix.errors import ProgramError
+import numpy as np
+
 from ncfix.nc.block import Block, ModalState
+from ncfix.nc.chunk import Chunk
 from ncfix.nc.lexer import WORD_RE, code_of, parse_number
+from ncfix.nc.plain import PlainReader
 from ncfix.profiles import Profile
 
 NAN = math.nan
@@ -21,8 +25,7 @@ MM_PER_INCH = 25.4
 # G codes whose axis words are not a move to a workpiece point.
 _NON_MOTION_G = {4.0, 10.0, 28.0, 30.0, 53.0, 92.0, 28.1, 30.1, 92.1, 92.2, 92.3}
 _HEIDENHAIN_LINEAR = {"L", "LN"}
-_PLAIN_MOTION = {"0": 0, "00": 0, "1": 1, "01": 1}
-_NUMERIC_CHARS = str.maketrans("", "", "0123456789.+-")
+_MIN_RUN = 8  # shorter runs of plain lines are cheaper one by one than as arrays
 _HEIDENHAIN_ARC = {"C", "CR", "CT", "CP"}
 
 
@@ -78,77 +81,123 @@ class Interpreter:
         self._plain_axes = tuple((letter, self.index[letter], kinds[letter]) for letter in kin.letters)
         self._vector_order = tuple(kin.orientation_letters) if profile.is_vector else ()
         self._vector_slot = {letter: i for i, letter in enumerate(self._vector_order)}
-        self._plain_letters = frozenset(("N", "G", "F", self.extrusion, *kin.letters))
+        plain_letters = tuple(dict.fromkeys(("N", "G", "F", self.extrusion, *kin.letters)))
+        self._plain_cols = {letter: i for i, letter in enumerate(plain_letters)}
+        self._plain_axis_cols = [self._plain_cols[letter] for letter in kin.letters]
         self._fast_ok = profile.dialect == "iso" and all(len(letter) == 1 for letter in kin.letters)
+        self._plain = PlainReader(plain_letters) if self._fast_ok else None
 
     def _fail(self, lineno: int, message: str, fix: str) -> ProgramError:
         return ProgramError(message, where=f"{self.source}:{lineno}", fix=fix)
 
     def feed(self, lineno: int, raw: str) -> Block:
-        if self._fast_ok:
-            block = self._feed_plain(lineno, raw)
-            if block is not None:
-                return block
+        """One line, read in full (the reference reading; :meth:`feed_chunk` agrees with it)."""
         return self._feed(lineno, raw)
 
-    def _feed_plain(self, lineno: int, raw: str) -> Block | None:
-        """The common line (`G1 X.. Y.. Z.. A.. C.. F..`, upper case, plain numbers) without the
-        regular expression; None sends anything else to :meth:`_feed`, which reads it the same way.
-        """
-        tokens = raw.split()
-        if not tokens:
-            return None
-        words_text = {t[0]: t[1:] for t in tokens}
-        if len(words_text) != len(tokens) or not words_text.keys() <= self._plain_letters:
-            return None
-        if "".join(words_text.values()).translate(_NUMERIC_CHARS):
-            return None  # letters inside a value (`X1E5`), `(`, `#`, `_`, …: the full reader
-        g = words_text.get("G")
-        motion = self.motion if g is None else _PLAIN_MOTION.get(g)
-        if motion is None or motion > 1:
-            return None
-        values = self.words
-        new = list(values)
-        moved = False
-        vector: list[float] | None = None
-        try:
-            for letter, idx, kind in self._plain_axes:
-                text = words_text.get(letter)
-                if text is None:
-                    continue
-                value = float(text)
-                moved = True
-                if kind == 2:
-                    if vector is None:
-                        vector = [0.0, 0.0, 0.0]
-                    vector[self._vector_slot[letter]] = value
-                    continue
-                if kind == 1 and self.inch:
-                    value *= MM_PER_INCH
-                new[idx] = new[idx] + value if self.incremental else value
-            e_text = words_text.get(self.extrusion)
-            e = float(e_text) if e_text is not None else None
-        except ValueError:
-            return None
-        if vector is not None:
-            if vector == [0.0, 0.0, 0.0]:
-                return None  # the full reader reports it
-            for letter, value in zip(self._vector_order, vector):
-                new[self.index[letter]] = value
-        block = Block(lineno, raw, self._state())
-        self.motion = motion
-        if e is not None:
-            if self.e_relative:
-                block.e_delta = e
-                self.e_value += e
+    def feed_chunk(self, lines: list[bytes], first_lineno: int) -> Chunk:
+        """Consecutive lines: plain ones vectorised (ncfix.nc.plain), the rest one by one."""
+        chunk = Chunk.empty(first_lineno, lines, self.nletters)
+        n = len(lines)
+        if n == 0:
+            return chunk
+        parse = self._plain.parse(lines) if self._fast_ok else None
+        if parse is None:
+            simple = np.zeros(n, dtype=bool)
+        else:
+            simple = parse.plain | parse.neutral
+        start = 0
+        for stop in [*np.flatnonzero(~simple).tolist(), n]:
+            if stop - start >= _MIN_RUN:
+                self._plain_run(parse, chunk, start, stop)
             else:
-                block.e_delta = e - self.e_value
-                self.e_value = e
-        if moved:
-            self.words = new
-            block.motion = motion
-            block.words = tuple(new)
-        return block
+                for i in range(start, stop):
+                    self._store(chunk, i, self._feed(first_lineno + i, lines[i].decode("latin-1")))
+            if stop < n:
+                self._store(chunk, stop, self._feed(first_lineno + stop, lines[stop].decode("latin-1")))
+            start = stop + 1
+        return chunk
+
+    def _store(self, chunk: Chunk, i: int, block: Block) -> None:
+        if block.motion is not None:
+            chunk.motion[i] = block.motion
+            chunk.words[i] = block.words
+        if block.e_delta is not None:
+            chunk.e_delta[i] = block.e_delta
+        state = block.state
+        chunk.tcp[i] = state.tcp
+        chunk.inch[i] = state.inch
+        chunk.incremental[i] = state.incremental
+        chunk.feed_mode[i] = state.feed_mode
+        chunk.deposit_on[i] = -1 if state.deposit_on is None else int(state.deposit_on)
+        chunk.opaque[i] = block.opaque
+
+    def _plain_run(self, parse, chunk: Chunk, a: int, b: int) -> None:
+        """Lines a..b-1, all plain or neutral: the modal rules as array operations."""
+        values = parse.values[a:b]
+        cols = self._plain_cols
+        g = values[:, cols["G"]]
+        if self.motion not in (0, 1):
+            # Axis words before the run's first G0/G1 are read by the full reader.
+            has_g = np.flatnonzero(~np.isnan(g))
+            head = b - a if len(has_g) == 0 else int(has_g[0])
+            axes_before = ~np.isnan(values[:head][:, self._plain_axis_cols]).all(axis=1)
+            if axes_before.any():
+                cut = a + int(np.flatnonzero(axes_before)[0]) + 1
+                for i in range(a, cut):
+                    self._store(chunk, i, self._feed(chunk.first_lineno + i, chunk.lines[i].decode("latin-1")))
+                if cut < b:
+                    self._plain_run(parse, chunk, cut, b)
+                return
+        motion = _ffill(g, float(self.motion) if self.motion is not None else np.nan)
+        m = b - a
+        positions = np.empty((m, self.nletters))
+        scale = MM_PER_INCH if self.inch else 1.0
+        for letter, idx, kind in self._plain_axes:
+            if kind == 2:
+                continue
+            column = values[:, cols[letter]]
+            if kind == 1 and scale != 1.0:
+                column = column * scale
+            if self.incremental:
+                positions[:, idx] = self.words[idx] + np.cumsum(np.nan_to_num(column, nan=0.0))
+            else:
+                positions[:, idx] = _ffill(column, self.words[idx])
+        if self._vector_order:
+            vec_cols = [cols[letter] for letter in self._vector_order]
+            comps = values[:, vec_cols]
+            given = ~np.isnan(comps).all(axis=1)
+            comps = np.where(given[:, None], np.nan_to_num(comps, nan=0.0), np.nan)
+            zero = given & (comps == 0.0).all(axis=1)
+            if zero.any():
+                raise self._zero_vector(chunk.first_lineno + a + int(np.flatnonzero(zero)[0]))
+            for j, letter in enumerate(self._vector_order):
+                positions[:, self.index[letter]] = _ffill(comps[:, j], self.words[self.index[letter]])
+        e = values[:, cols[self.extrusion]]
+        has_e = ~np.isnan(e)
+        if has_e.any():
+            if self.e_relative:
+                chunk.e_delta[a:b] = e
+                self.e_value += float(np.nansum(e))
+            else:
+                e_abs = _ffill(e, self.e_value)
+                before = np.concatenate(([self.e_value], e_abs[:-1]))
+                chunk.e_delta[a:b] = np.where(has_e, e_abs - before, np.nan)
+                self.e_value = float(e_abs[-1])
+        moved = ~np.isnan(values[:, self._plain_axis_cols]).all(axis=1) & ~np.isnan(motion)
+        chunk.motion[a:b] = np.where(moved, motion, -1).astype(np.int8)
+        chunk.words[a:b][moved] = positions[moved]
+        state = self._state()
+        chunk.tcp[a:b] = state.tcp
+        chunk.inch[a:b] = state.inch
+        chunk.incremental[a:b] = state.incremental
+        chunk.feed_mode[a:b] = state.feed_mode
+        chunk.deposit_on[a:b] = -1 if state.deposit_on is None else int(state.deposit_on)
+        self.words = positions[-1].tolist()
+        last = motion[-1]
+        self.motion = None if np.isnan(last) else int(last)
+
+    def _zero_vector(self, lineno: int) -> ProgramError:
+        return self._fail(lineno, "the tool vector is (0, 0, 0)", "give a non-zero vector; a vertical tool is 0, 0, 1")
 
     def _feed(self, lineno: int, raw: str) -> Block:
         block = Block(lineno, raw, self._state())
@@ -306,8 +355,7 @@ class Interpreter:
                     text = given.get(idx, "")
                     comps.append(NAN if text is None else parse_number(text) if text else 0.0)
                 if comps[0] == 0.0 and comps[1] == 0.0 and comps[2] == 0.0:
-                    raise self._fail(lineno, "the tool vector is (0, 0, 0)",
-                                     "give a non-zero vector; a vertical tool is 0, 0, 1")
+                    raise self._zero_vector(lineno)
                 for letter, value in zip(self.profile.kinematics.orientation_letters, comps):
                     new[self.index[letter]] = value
             if g92 or non_motion:
@@ -341,6 +389,14 @@ class Interpreter:
                 self.deposit_on = True
             elif key == self.deposit_codes[1]:
                 self.deposit_on = False
+
+
+def _ffill(column: np.ndarray, initial: float) -> np.ndarray:
+    """Carry the last non-NaN value forward; ``initial`` before the first one."""
+    present = ~np.isnan(column)
+    index = np.where(present, np.arange(len(column)), -1)
+    np.maximum.accumulate(index, out=index)
+    return np.where(index >= 0, column[np.maximum(index, 0)], initial)
 
 
 def _matches(key: tuple[str, float | str], codes: list[tuple[str, float | str]]) -> bool:

@@ -1,0 +1,49 @@
+"""A chunk of consecutive lines and, per line, what the modal state says it does (numpy columns)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Chunk:
+    """Lines ``first_lineno ..`` of the input (raw bytes, ends kept) and their meaning.
+
+    motion : (n,) int8, -1 where the line does not move, else 0/1/2/3 (G0..G3)
+    words : (n, k) float64, the profile's machine words after modal carry-over (mm, degrees),
+        NaN on lines that do not move and for axes the program has not set
+    e_delta : (n,) float64, extrusion of the line, NaN without an extrusion word
+    tcp, inch, incremental, opaque : (n,) bool
+    feed_mode : (n,) int16 (93, 94, 95); deposit_on : (n,) int8 (-1 when no deposit codes)
+    new_words : line index in the chunk → new words (k,), set by the stages that change blocks
+    """
+
+    first_lineno: int
+    lines: list[bytes]
+    motion: np.ndarray
+    words: np.ndarray
+    e_delta: np.ndarray
+    tcp: np.ndarray
+    inch: np.ndarray
+    incremental: np.ndarray
+    opaque: np.ndarray
+    feed_mode: np.ndarray
+    deposit_on: np.ndarray
+    new_words: dict[int, np.ndarray] = field(default_factory=dict)
+    reasons: dict[int, str] = field(default_factory=dict)
+
+    @classmethod
+    def empty(cls, first_lineno: int, lines: list[bytes], nwords: int) -> "Chunk":
+        n = len(lines)
+        return cls(
+            first_lineno=first_lineno, lines=lines,
+            motion=np.full(n, -1, dtype=np.int8), words=np.full((n, nwords), np.nan),
+            e_delta=np.full(n, np.nan), tcp=np.zeros(n, dtype=bool), inch=np.zeros(n, dtype=bool),
+            incremental=np.zeros(n, dtype=bool), opaque=np.zeros(n, dtype=bool),
+            feed_mode=np.full(n, 94, dtype=np.int16), deposit_on=np.full(n, -1, dtype=np.int8),
+        )
+
+    def __len__(self) -> int:
+        return len(self.lines)

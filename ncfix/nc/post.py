@@ -1,0 +1,105 @@
+"""Write a fresh program from tip points and tool vectors through a profile, as a real post would.
+
+Used to make the bundled samples and the benchmarks' generated programs; not on the filter's path
+(the filter never re-posts a program, it edits blocks in place).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+
+import numpy as np
+
+from ncfix.nc.emit import format_value
+from ncfix.profiles import Profile
+
+
+def post_program(profile: Profile, points: np.ndarray, vectors: np.ndarray, *, title: str, number: int = 1,
+                 feed_mm_min: float = 1200.0, approach_mm: float = 20.0,
+                 comments: Sequence[tuple[int, str]] = ()) -> Iterator[str]:
+    """Lines (with LF) of a program depositing along ``points`` (n, 3) with tool ``vectors`` (n, 3).
+
+    The head approaches the first point from ``approach_mm`` above it along its vector, deposits
+    along the path (feed moves), and retracts. ``comments`` puts ``(index, text)`` comments
+    before the block of that point.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    vectors = np.asarray(vectors, dtype=np.float64)
+    vectors = vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
+    kin = profile.kinematics
+    fmt = profile.number_format
+    tcp = profile.tcp != "never"
+    letters = kin.letters
+    decimals = {letter: fmt.linear if letter in ("X", "Y", "Z") else (fmt.vector if profile.is_vector else fmt.angle)
+                for letter in letters}
+    dialect = profile.dialect
+    notes = dict(comments)
+
+    def words_line(words: np.ndarray, previous: np.ndarray | None, motion: str, extra: str = "") -> str:
+        parts = []
+        for letter, value, old in zip(letters, words, previous if previous is not None else [None] * len(letters)):
+            text = format_value(value, decimals[letter], None, fmt.force_sign, fmt.force_decimal_point)
+            if dialect == "heidenhain" or profile.is_vector or old is None or text != format_value(
+                    old, decimals[letter], None, fmt.force_sign, fmt.force_decimal_point):
+                joiner = "=" if dialect == "sinumerik" and len(letter) > 1 else ""
+                parts.append(f"{letter}{joiner}{text}")
+        if dialect == "heidenhain":
+            keyword = "LN" if profile.is_vector else "L"
+            feed = "FMAX" if motion == "rapid" else f"F{feed_mm_min:.0f}"
+            return f"{keyword} {' '.join(parts)} {feed}{extra}"
+        code = "G0" if motion == "rapid" else "G1"
+        return f"{code} {' '.join(parts)}{extra}"
+
+    start = np.zeros(len(letters))
+    if profile.is_vector:
+        start[3:] = (0.0, 0.0, 1.0)
+    approach = points[0] + approach_mm * vectors[0]
+    previous = kin.inverse(approach, vectors[0], start, tcp=tcp)
+    body = [words_line(previous, None, "rapid")]
+    feed_text = f" F{feed_mm_min:.0f}" if dialect != "heidenhain" else ""
+    for i, (p, n) in enumerate(zip(points, vectors)):
+        if i in notes:
+            body.append(_comment(dialect, notes[i]))
+        words = kin.inverse(p, n, previous, tcp=tcp)
+        body.append(words_line(words, previous, "feed", feed_text if i == 0 else ""))
+        previous = words
+    retract = points[-1] + approach_mm * vectors[-1]
+    body.append(words_line(kin.inverse(retract, vectors[-1], previous, tcp=tcp), previous, "rapid"))
+
+    yield from _wrap(profile, body, title, number)
+
+
+def _comment(dialect: str, text: str) -> str:
+    return f"; {text}" if dialect in ("sinumerik", "heidenhain") else f"({text.upper()})"
+
+
+def _wrap(profile: Profile, body: list[str], title: str, number: int) -> Iterator[str]:
+    dialect = profile.dialect
+    name = title.upper().replace(" ", "_")
+    if dialect == "heidenhain":
+        lines = [f"BEGIN PGM {name} MM", "TOOL CALL 1 Z S0", "M128", *body, "M129", f"END PGM {name} MM"]
+        for i, line in enumerate(lines):
+            yield f"{i} {line}\n"
+        return
+    if dialect == "sinumerik":
+        head = [f"; %_N_{name}_MPF", f"; {title} (posted for ncfix samples)", "G17 G71 G90 G94", "TRAORI",
+                "ORIWKS", "ORIVECT"]
+        tail = ["TRAFOOF", "M30"]
+        for line in head[:2]:
+            yield line + "\n"
+        for i, line in enumerate(head[2:] + body + tail):
+            yield f"N{10 * (i + 1)} {line}\n"
+        return
+    tcp_code = "G43.5 H1" if profile.is_vector else "G43.4 H1"
+    yield "%\n"
+    yield f"O{number:04d} ({title.upper()})\n"
+    yield "(POSTED FOR NCFIX SAMPLES: TIP POINTS, TCP ON)\n"
+    lines = ["G21 G90 G94 G17", "G54", tcp_code if profile.tcp != "never" else "G49", *body, "G49", "M30"]
+    n = 0
+    for line in lines:
+        if line.startswith("("):
+            yield line + "\n"
+            continue
+        n += 10
+        yield f"N{n} {line}\n"
+    yield "%\n"
