@@ -95,9 +95,22 @@ def _list_machines() -> int:
     return EXIT_OK
 
 
+def _config_path(args: argparse.Namespace) -> Path:
+    """-c PATH; else ./ncfix.toml; else ncfix.toml beside the input file (so a folder of programs
+    can carry its own settings: `ncfix samples/bathtub_273.nc`)."""
+    if args.config is not None:
+        return Path(args.config)
+    here = Path("ncfix.toml")
+    if here.exists() or args.input == "-":
+        return here
+    beside = Path(args.input).parent / "ncfix.toml"
+    return beside if beside.exists() else here
+
+
 def _options(args: argparse.Namespace) -> Options:
     explicit = args.config is not None
-    config = load_config(Path(args.config or "ncfix.toml"), explicit)
+    path = _config_path(args)
+    config = load_config(path, explicit)
     cli = {
         "machine": args.machine, "head": args.head, "head_tip": args.head_tip, "head_axis": args.head_axis,
         "part": args.part, "standoff": args.standoff, "pivot": args.pivot, "max_step": args.max_step,
@@ -106,7 +119,7 @@ def _options(args: argparse.Namespace) -> Options:
         "window": args.window, "check": args.check, "report": args.report, "diff": args.diff, "html": args.html,
         "device": args.device, "quiet": args.quiet, "verbose": args.verbose,
     }
-    return build_options(config, cli, where=str(args.config or "ncfix.toml"))
+    return build_options(config, cli, where=str(path))
 
 
 def _open_input(path: str) -> BinaryIO:

@@ -84,8 +84,8 @@ def load_config(path: Path, explicit: bool) -> dict[str, Any]:
     return dict(table)
 
 
-def build_options(config: dict[str, Any], cli: dict[str, Any], where: str = "command line") -> Options:
-    """Defaults < config file < command line; every value checked and converted."""
+def build_options(config: dict[str, Any], cli: dict[str, Any], where: str = "ncfix.toml") -> Options:
+    """Defaults < config file (at ``where``) < command line; every value checked and converted."""
     merged: dict[str, Any] = {}
     for source, values in (("config", config), ("command line", cli)):
         for key, value in values.items():
@@ -94,16 +94,16 @@ def build_options(config: dict[str, Any], cli: dict[str, Any], where: str = "com
     out = Options()
     converted = {}
     for key, (source, value) in merged.items():
-        converted[key] = _convert(key, value, source)
+        converted[key] = _convert(key, value, source, where)
     return replace(out, **converted)
 
 
-def _convert(key: str, value: Any, source: str) -> Any:
+def _convert(key: str, value: Any, source: str, config_path: str) -> Any:
     flag = "--" + key.replace("_", "-")
     name = flag if source == "command line" else f"key '{key}'"
 
     def bad(expected: str) -> ConfigError:
-        return ConfigError(f"{name} has a bad value {value!r}", where=source if source != "command line" else None,
+        return ConfigError(f"{name} has a bad value {value!r}", where=config_path if source == "config" else None,
                            fix=expected)
 
     if key in ("standoff", "max_step", "max_tilt", "pitch", "clearance", "bead_radius", "tip_allowance"):

@@ -106,7 +106,8 @@ def test_bad_config_value_names_the_key(tmp_path):
     (tmp_path / "ncfix.toml").write_text('[ncfix]\npitch = "fine"\n')
     done = ncfix("-", stdin=PROGRAM, cwd=tmp_path)
     assert done.returncode == 2
-    assert "key 'pitch' has a bad value 'fine'" in done.stderr.decode()
+    assert done.stderr.decode().strip() == (
+        "ncfix: error: ncfix.toml: key 'pitch' has a bad value 'fine' (give a number)")
 
 
 def test_report_schema_and_empty_diff_on_pass_through(tmp_path, program):
@@ -132,3 +133,16 @@ def test_broken_pipe_ends_quietly(tmp_path):
 def test_main_can_be_called_in_process(program, capsysbinary):
     assert main([str(program), "-q"]) == 0
     assert capsysbinary.readouterr().out == PROGRAM
+
+
+def test_config_beside_the_input_is_used_when_none_is_in_the_working_folder(tmp_path):
+    folder = tmp_path / "programs"
+    folder.mkdir()
+    (folder / "ncfix.toml").write_text('[ncfix]\nmachine = "table-bc"\n')
+    (folder / "p.nc").write_bytes(PROGRAM)
+    report = tmp_path / "r.json"
+    work = tmp_path / "work"
+    work.mkdir()
+    done = ncfix(str(folder / "p.nc"), "--report", str(report), "-q", cwd=work)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(report.read_text())["machine"] == "table-bc"

@@ -17,24 +17,23 @@ _CHECKSUM_RE = re.compile(r"\*(\d+)([ \t]*)$")
 
 
 def format_value(value: float, default_decimals: int, like: str | None = None, force_sign: bool = False,
-                 force_point: bool = False) -> str:
+                 force_point: bool = False, trim: bool | None = None) -> str:
     """``value`` printed in the style of the value text ``like`` (or by the defaults).
 
     A ``like`` with as many decimals as the default or more is a fixed-decimals post: keep its
     count. One with fewer is a post that trims zeros (`X10.`, `I0.258819`, `X-49.65`): print the
-    default decimals and trim. A leading `+`, a trailing `.` and a missing leading zero carry over.
+    default decimals and trim. ``trim`` overrides that guess (the line's other words may show it).
+    A leading `+`, a trailing `.` and a missing leading zero carry over.
     """
     decimals = default_decimals
-    trim = False
     if like is not None:
         bare = like.lstrip("+- \t")
         force_sign = force_sign or like.lstrip(" \t").startswith("+")
         force_point = force_point or bare.endswith(".")
-        observed = decimals_of(like)
-        if observed >= default_decimals:
-            decimals = observed
-        else:
-            trim = True
+        if trim is None:
+            trim = trims_zeros(like, default_decimals)
+        if not trim:
+            decimals = max(default_decimals, decimals_of(like))
     text = f"{value:.{decimals}f}"
     if float(text) == 0.0:
         text = f"{0.0:.{decimals}f}"  # never `-0.000`
@@ -47,6 +46,11 @@ def format_value(value: float, default_decimals: int, like: str | None = None, f
     if force_sign and not text.startswith("-"):
         text = "+" + text
     return text
+
+
+def trims_zeros(like: str, default_decimals: int) -> bool:
+    """Whether a value text looks printed by a post that trims trailing zeros."""
+    return decimals_of(like) < default_decimals
 
 
 def rewrite_line(raw: str, profile: Profile, values: dict[str, float], required: tuple[str, ...] = ()) -> str:
@@ -70,6 +74,13 @@ def rewrite_line(raw: str, profile: Profile, values: dict[str, float], required:
         return "linear"
 
     defaults = {"linear": fmt.linear, "angle": fmt.angle, "vector": fmt.vector}
+    # A post trims zeros for all words of a kind or for none: one trimmed sibling tells.
+    trim = {kind: False for kind in defaults}
+    for letter in kin.letters:
+        if letter in spans:
+            kind = kind_of(letter)
+            trim[kind] = trim[kind] or trims_zeros(spans[letter].value, defaults[kind])
+            defaults[kind] = max(defaults[kind], decimals_of(spans[letter].value))
     edits: list[tuple[int, int, str]] = []
     missing: list[str] = []
     for letter in kin.letters:
@@ -83,7 +94,7 @@ def rewrite_line(raw: str, profile: Profile, values: dict[str, float], required:
             missing.append(letter)
             continue
         new_text = format_value(values[letter], defaults[kind_of(letter)], span.value, fmt.force_sign,
-                                fmt.force_decimal_point)
+                                fmt.force_decimal_point, trim[kind_of(letter)])
         old_text = span.value
         try:
             if float(old_text.replace(" ", "").replace("\t", "")) == float(new_text):
@@ -103,7 +114,7 @@ def rewrite_line(raw: str, profile: Profile, values: dict[str, float], required:
             siblings = [spans[l] for l in kin.letters if l in spans and kind_of(l) == kind_of(letter)]
             like = siblings[0].value if siblings else None
             text = format_value(values[letter], defaults[kind_of(letter)], like, fmt.force_sign,
-                                fmt.force_decimal_point)
+                                fmt.force_decimal_point, trim[kind_of(letter)] if like is not None else None)
             address = letter.lower() if lower else letter
             joiner = "=" if profile.dialect == "sinumerik" and len(letter) > 1 else ""
             pieces.append(f"{sep}{address}{joiner}{text}")

@@ -16,7 +16,8 @@ from ncfix.profiles import Profile
 
 def post_program(profile: Profile, points: np.ndarray, vectors: np.ndarray, *, title: str, number: int = 1,
                  feed_mm_min: float = 1200.0, approach_mm: float = 20.0,
-                 comments: Sequence[tuple[int, str]] = ()) -> Iterator[str]:
+                 comments: Sequence[tuple[int, str]] = (),
+                 deposit_codes: tuple[str, str] | None = None) -> Iterator[str]:
     """Lines (with LF) of a program depositing along ``points`` (n, 3) with tool ``vectors`` (n, 3).
 
     The head approaches the first point from ``approach_mm`` above it along its vector, deposits
@@ -62,7 +63,11 @@ def post_program(profile: Profile, points: np.ndarray, vectors: np.ndarray, *, t
             body.append(_comment(dialect, notes[i]))
         words = kin.inverse(p, n, previous, tcp=tcp)
         body.append(words_line(words, previous, "feed", feed_text if i == 0 else ""))
+        if i == 0 and deposit_codes:
+            body.append(deposit_codes[0])
         previous = words
+    if deposit_codes:
+        body.append(deposit_codes[1])
     retract = points[-1] + approach_mm * vectors[-1]
     body.append(words_line(kin.inverse(retract, vectors[-1], previous, tcp=tcp), previous, "rapid"))
 

@@ -55,11 +55,13 @@ class Writer:
         scale = MM_PER_INCH if chunk.inch[i] else 1.0
         for k, letter in enumerate(self.letters):
             new, old = float(target[k]), float(words[k])
+            if math.isnan(new):
+                continue  # an axis the program has not set is never written
             factor = scale if letter in ("X", "Y", "Z") else 1.0
             if incremental and letter not in self.vector_letters and previous_emitted is not None:
                 new_inc = new - float(previous_emitted[k])
                 old_inc = old - float(previous_programmed[k])
-                if not math.isclose(new_inc, old_inc, abs_tol=1e-12):
+                if not math.isnan(new_inc) and not math.isclose(new_inc, old_inc, abs_tol=1e-12):
                     values[letter] = new_inc / factor
             elif not math.isclose(new, old, abs_tol=1e-12):
                 values[letter] = new / factor

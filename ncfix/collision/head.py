@@ -1,0 +1,241 @@
+"""The head model for checking: balls that provably cover the head, densest near the nozzle.
+
+Built from a voxel grid of the head at the pitch (head frame: tip at the origin, axis +Z):
+
+1. *marked* cells: cells whose centre is inside the head (exact, column winding counts) plus
+   cells the surface may pass through (centre within half a cell diagonal of a triangle).
+   Every point of the head lies in a marked cell: a cell the surface does not cross is wholly
+   inside or wholly outside, and then its centre says which.
+2. *interior balls*: cubes of 2^L cells (L = max_level .. 1) whose circumscribed ball lies
+   within marked cells, coarsest first; they replace the many cells deep inside the head.
+3. *risk zones* (the seed's lower/middle/upper sections along the axis): the remaining marked
+   cells are covered by the circumscribed balls of cubes of 1, 2 and 4 cells in the lower,
+   middle and upper zone. Fine balls where collisions happen, coarse ones high up: the coarse
+   balls only make the model more conservative, never less.
+
+Every ball is the circumscribed ball of a cube of cells, and every marked cell lies in such a
+cube, so the union of balls covers the head: when every ball centre is farther than its radius
+(plus the clearance) from every body, the head is free. The balls are grouped into a few
+bounding spheres for a coarse first test.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from ncfix.collision.voxelize import grid_frame, surface_cells, voxelize
+from ncfix.geometry.tolerances import TOLERANCES
+
+ZONE_NAMES = ("lower", "middle", "upper")
+
+
+@dataclass(frozen=True)
+class RiskZones:
+    """Where the head's lower/middle/upper sections end, and how coarse each one is sampled.
+
+    tops_fraction : top of the lower and middle section, as fractions of the head's height
+    levels : cube edge of the covering balls in each section, as log2 of cells (0 = one cell)
+    """
+
+    tops_fraction: tuple[float, float] = (0.3, 0.7)
+    levels: tuple[int, int, int] = (0, 1, 2)
+
+
+@dataclass(frozen=True)
+class HeadModel:
+    """Covering balls of a head in its frame (tip at the origin, axis +Z).
+
+    centers_mm : (n, 3) float64, ball centres, head frame
+    radii_mm : (n,) float64
+    zone : (n,) int8, 0 lower, 1 middle, 2 upper (by the ball centre's height)
+    interior : (n,) bool, True for the coarse balls deep inside the head
+    group : (n,) int64, index into the bounding spheres
+    group_centers_mm : (k, 3) float64; group_radii_mm : (k,) float64; each bounding sphere
+        contains all balls of its group
+    pitch_mm : the voxel pitch the model was built at
+    zone_tops_mm : (2,) float64, heights where the lower and the middle zone end
+    marked_cells : number of voxels (inside or on the surface) the balls cover
+    """
+
+    centers_mm: np.ndarray
+    radii_mm: np.ndarray
+    zone: np.ndarray
+    interior: np.ndarray
+    group: np.ndarray
+    group_centers_mm: np.ndarray
+    group_radii_mm: np.ndarray
+    pitch_mm: float
+    zone_tops_mm: np.ndarray
+    marked_cells: int
+
+    def counts(self) -> dict[str, int]:
+        """Ball counts for ``-v``: per zone (surface samples), interior balls, bounding spheres."""
+        samples = ~self.interior
+        out = {name: int((samples & (self.zone == k)).sum()) for k, name in enumerate(ZONE_NAMES)}
+        out["interior"] = int(self.interior.sum())
+        out["total"] = int(len(self.radii_mm))
+        out["spheres"] = int(len(self.group_radii_mm))
+        return out
+
+    def zone_fractions(self) -> tuple[float, float, float]:
+        """Share of the surface samples in the lower, middle and upper zone."""
+        c = self.counts()
+        total = max(1, c["lower"] + c["middle"] + c["upper"])
+        return (c["lower"] / total, c["middle"] / total, c["upper"] / total)
+
+    def summary(self) -> str:
+        """One line for ``-v``."""
+        c = self.counts()
+        f = self.zone_fractions()
+        return (
+            f"head model at {self.pitch_mm:g} mm: {c['total']} balls "
+            f"({c['lower'] + c['middle'] + c['upper']} samples: lower {c['lower']} ({f[0]:.0%}), "
+            f"middle {c['middle']} ({f[1]:.0%}), upper {c['upper']} ({f[2]:.0%}); "
+            f"{c['interior']} interior), {c['spheres']} bounding spheres"
+        )
+
+    def covers(self, points_mm: np.ndarray) -> np.ndarray:
+        """Whether each head-frame point (n, 3) lies in some ball -> (n,) bool."""
+        from scipy.spatial import cKDTree
+
+        pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+        tree = cKDTree(self.centers_mm)
+        out = np.zeros(len(pts), dtype=bool)
+        for i, near in enumerate(tree.query_ball_point(pts, float(self.radii_mm.max()))):
+            if near:
+                d = np.linalg.norm(self.centers_mm[near] - pts[i], axis=1)
+                out[i] = bool((d <= self.radii_mm[near]).any())
+        return out
+
+
+def build_head_model(
+    head: trimesh.Trimesh,
+    pitch_mm: float = 0.5,
+    *,
+    zones: RiskZones = RiskZones(),
+    max_level: int = 4,
+    target_spheres: int = 24,
+) -> HeadModel:
+    """Build the covering-ball model of a closed head mesh given in the head frame."""
+    pitch = float(pitch_mm)
+    v = np.asarray(head.vertices, dtype=np.float64)
+    f = np.asarray(head.faces, dtype=np.int64)
+    bounds = np.array([v.min(axis=0), v.max(axis=0)])
+    align = 2**max_level
+    origin, shape = grid_frame(bounds, pitch, pad_cells=1, align_cells=align)
+    inside = voxelize(v, f, pitch, origin_mm=origin, shape=shape).occupancy
+    half_diagonal = 0.5 * np.sqrt(3.0) * pitch
+    band = surface_cells(v, f, origin, shape, pitch, half_diagonal + TOLERANCES.cover_slack_mm)
+    marked = inside | band
+
+    height = bounds[1, 2] - bounds[0, 2]
+    # Zone boundaries on block edges of the coarsest zone level, so no cube straddles two zones.
+    zone_block = 2 ** max(zones.levels) * pitch
+    edge0 = origin[2] - 0.5 * pitch
+    tops = np.array(
+        [edge0 + np.round((bounds[0, 2] + t * height - edge0) / zone_block) * zone_block for t in zones.tops_fraction]
+    )
+    cell_z = origin[2] + np.arange(shape[2]) * pitch
+    cell_zone = np.searchsorted(tops, cell_z, side="right")
+    # An interior ball may reach past the marked cells by as much as a sample ball of its zone
+    # can (the cube of that zone's level, less one cell): no looser than the zone already is.
+    zone_slack = np.array([2**level - 1 for level in zones.levels])
+
+    covered = np.zeros(shape, dtype=bool)
+    centers: list[np.ndarray] = []
+    radii: list[np.ndarray] = []
+    interior: list[np.ndarray] = []
+
+    # Summed-volume table of unmarked cells: a window is fully marked when its sum is zero.
+    unmarked = np.zeros(tuple(s + 1 for s in shape), dtype=np.int32)
+    unmarked[1:, 1:, 1:] = (~marked).astype(np.int32).cumsum(0).cumsum(1).cumsum(2)
+    dims = np.array(shape)
+    for level in range(max_level, 0, -1):
+        b = 2**level
+        starts = np.argwhere(np.ones(tuple(dims // b), dtype=bool)) * b
+        # The ball around a cube of edge b reaches (sqrt(3) - 1) / 2 * b beyond its faces.
+        reach = int(np.ceil((np.sqrt(3.0) - 1.0) / 2.0 * b))
+        block_zone = cell_zone[np.minimum(starts[:, 2] + b // 2, shape[2] - 1)]
+        margin = np.maximum(reach - zone_slack[block_zone], 0)[:, None]
+        lo, hi = starts - margin, starts + b + margin
+        ok = (lo >= 0).all(axis=1) & (hi <= dims).all(axis=1)
+        lo, hi, starts = lo[ok], hi[ok], starts[ok]
+        solid = _window_sum(unmarked, lo, hi) == 0
+        starts = starts[solid]
+        # Skip cubes already inside a coarser accepted cube.
+        starts = starts[~covered[starts[:, 0], starts[:, 1], starts[:, 2]]]
+        accepted = np.zeros(tuple(dims // b), dtype=bool)
+        accepted[tuple((starts // b).T)] = True
+        covered |= accepted.repeat(b, 0).repeat(b, 1).repeat(b, 2)
+        centers.append(origin + (starts + 0.5 * (b - 1)) * pitch)
+        radii.append(np.full(len(starts), 0.5 * np.sqrt(3.0) * b * pitch))
+        interior.append(np.ones(len(starts), dtype=bool))
+
+    remaining = marked & ~covered
+    for zone, level in enumerate(zones.levels):
+        b = 2**level
+        mask = remaining & (cell_zone == zone)[None, None, :]
+        blocks = mask.reshape(dims[0] // b, b, dims[1] // b, b, dims[2] // b, b).any(axis=(1, 3, 5))
+        starts = np.argwhere(blocks) * b
+        centers.append(origin + (starts + 0.5 * (b - 1)) * pitch)
+        radii.append(np.full(len(starts), 0.5 * np.sqrt(3.0) * b * pitch))
+        interior.append(np.zeros(len(starts), dtype=bool))
+
+    c = np.concatenate(centers)
+    r = np.concatenate(radii) + TOLERANCES.cover_slack_mm
+    inner = np.concatenate(interior)
+    zone_of = np.searchsorted(tops, c[:, 2], side="right").astype(np.int8)
+    group, g_centers, g_radii = _group(c, r, bounds, target_spheres)
+    return HeadModel(
+        centers_mm=c,
+        radii_mm=r,
+        zone=zone_of,
+        interior=inner,
+        group=group,
+        group_centers_mm=g_centers,
+        group_radii_mm=g_radii,
+        pitch_mm=pitch,
+        zone_tops_mm=tops,
+        marked_cells=int(marked.sum()),
+    )
+
+
+def _window_sum(table: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Sums over boxes [lo, hi) (n, 3) from a summed-volume table with a zero border."""
+    x0, y0, z0 = lo.T
+    x1, y1, z1 = hi.T
+    return (
+        table[x1, y1, z1]
+        - table[x0, y1, z1]
+        - table[x1, y0, z1]
+        - table[x1, y1, z0]
+        + table[x0, y0, z1]
+        + table[x0, y1, z0]
+        + table[x1, y0, z0]
+        - table[x0, y0, z0]
+    )
+
+
+def _group(
+    centers: np.ndarray, radii: np.ndarray, bounds: np.ndarray, target: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bin balls into cubes sized for about ``target`` bins; a bounding sphere per bin."""
+    size = bounds[1] - bounds[0]
+    edge = max(float(np.prod(size) / target) ** (1.0 / 3.0), 1e-9)
+    key = np.maximum(np.floor((centers - bounds[0]) / edge).astype(np.int64) + 1, 0)
+    flat = np.ravel_multi_index(tuple(key.T), tuple(key.max(axis=0) + 1))
+    _, group = np.unique(flat, return_inverse=True)
+    group = group.reshape(-1)
+    k = int(group.max()) + 1
+    lo = np.full((k, 3), np.inf)
+    hi = np.full((k, 3), -np.inf)
+    np.minimum.at(lo, group, centers - radii[:, None])
+    np.maximum.at(hi, group, centers + radii[:, None])
+    g_centers = 0.5 * (lo + hi)
+    reach = np.linalg.norm(centers - g_centers[group], axis=1) + radii
+    g_radii = np.zeros(k)
+    np.maximum.at(g_radii, group, reach)
+    return group, g_centers, g_radii
