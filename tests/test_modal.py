@@ -189,3 +189,21 @@ def test_chunk_reader_agrees_on_the_corpus(name, machine):
     data = corpus_path(*name.split("/")).read_bytes()
     assert_chunks_match_lines(data, machine, 4096)
     assert_chunks_match_lines(data[:200_000], machine, 37)
+
+
+@pytest.mark.parametrize("name", ["multiaxis_3dp_motionplanning/model_1_Gcode.txt", "linuxcnc/boat-xyzac.ngc",
+                                  "linuxcnc/impeller-7bl-xyzac.ngc"])
+def test_compiled_plain_reader_agrees_with_the_array_reader(name):
+    from ncfix.nc.plain import PlainReader
+    from ncfix.nc.plain_jit import PlainReaderJit
+
+    if not PlainReaderJit.available:
+        pytest.skip("numba is not installed")
+    letters = ("N", "G", "F", "E", "X", "Y", "Z", "C", "B", "A")
+    lines = corpus_path(*name.split("/")).read_bytes().splitlines(keepends=True)
+    extra = [b"G1 X1.2.3\n", b"X1-2\n", b"G1 X+-1\n", b"(c)\n", b"  \r\n", b"; x\n", b"G2 X1\n", b"N10 5 X1\n",
+             b"G01 X007 Y+3", b"G1 X1 X2\n", b"G1 X12345678901234567\n", b"g1 x1\n", b"X.5 Y-.25 Z1.\n"]
+    for chunk in (lines[:5000], extra):
+        a, b = PlainReader(letters).parse(chunk), PlainReaderJit(letters).parse(chunk)
+        assert (a.plain == b.plain).all() and (a.neutral == b.neutral).all()
+        assert np.array_equal(a.values[a.plain], b.values[b.plain], equal_nan=True)

@@ -17,6 +17,7 @@ from ncfix.nc.block import Block, ModalState
 from ncfix.nc.chunk import Chunk
 from ncfix.nc.lexer import WORD_RE, code_of, parse_number
 from ncfix.nc.plain import PlainReader
+from ncfix.nc.plain_jit import PlainReaderJit
 from ncfix.profiles import Profile
 
 NAN = math.nan
@@ -85,7 +86,8 @@ class Interpreter:
         self._plain_cols = {letter: i for i, letter in enumerate(plain_letters)}
         self._plain_axis_cols = [self._plain_cols[letter] for letter in kin.letters]
         self._fast_ok = profile.dialect == "iso" and all(len(letter) == 1 for letter in kin.letters)
-        self._plain = PlainReader(plain_letters) if self._fast_ok else None
+        reader = PlainReaderJit if PlainReaderJit.available else PlainReader
+        self._plain = reader(plain_letters) if self._fast_ok else None
 
     def _fail(self, lineno: int, message: str, fix: str) -> ProgramError:
         return ProgramError(message, where=f"{self.source}:{lineno}", fix=fix)
