@@ -207,3 +207,23 @@ def test_compiled_plain_reader_agrees_with_the_array_reader(name):
         a, b = PlainReader(letters).parse(chunk), PlainReaderJit(letters).parse(chunk)
         assert (a.plain == b.plain).all() and (a.neutral == b.neutral).all()
         assert np.array_equal(a.values[a.plain], b.values[b.plain], equal_nan=True)
+
+
+def test_ring_program_reads_as_its_first_layer_waypoints():
+    """S3_DeformFDM ring: A is the filament, B/C rotate the table; waypoints are Y-up (x, y, z) → (x, -z, y)."""
+    gcode = corpus_path("s3_deformfdm", "ring_Gcode.txt")
+    waypoints = np.loadtxt(corpus_path("s3_deformfdm", "ring_waypoint", "0.txt"))
+    expected = np.stack([waypoints[:, 0], -waypoints[:, 2], waypoints[:, 1]], axis=1)
+    profile = load_profile("s3-deformfdm-bc")
+    interp = Interpreter(profile, str(gcode))
+    words = []
+    with open(gcode, "rb") as handle:
+        for lineno, raw in enumerate(handle, start=1):
+            block = interp.feed(lineno, raw.decode("latin-1"))
+            if block.motion == 1 and block.e_delta is not None and b" B" in raw and b" X" in raw:
+                words.append(block.words)
+            if len(words) == len(expected):
+                break
+    p, _, _ = profile.kinematics.forward(np.array(words), tcp=False)
+    # The program prints 2 decimals: each coordinate is within 0.005 mm, the point within 0.0087.
+    assert np.abs(p - expected).max() < 0.0087
