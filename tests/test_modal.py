@@ -23,19 +23,26 @@ def motion_words(text: str, machine: str = "ijk", **kwargs):
     return [b.words for b in interpret(text, machine, **kwargs) if b.motion is not None]
 
 
-def test_model_1_reads_as_its_34114_waypoints():
-    gcode = corpus_path("multiaxis_3dp_motionplanning", "model_1_Gcode.txt")
-    folder = corpus_path("multiaxis_3dp_motionplanning", "model_1", "waypoint")
-    expected = np.concatenate([np.loadtxt(folder / f"{i}.txt")[:, :3] for i in range(1, 18)])
-    profile = load_profile("multiaxis-3dp-bc")
+def printed_points(gcode, machine: str, limit: int | None = None) -> np.ndarray:
+    """Workpiece points (n, 3) of a printer program's extruding G1 blocks that carry X and B."""
+    profile = load_profile(machine)
     interp = Interpreter(profile, str(gcode))
     words = []
     with open(gcode, "rb") as handle:
         for lineno, raw in enumerate(handle, start=1):
             block = interp.feed(lineno, raw.decode("latin-1"))
-            if block.motion == 1 and block.e_delta is not None and "X" in block.raw:
+            if block.motion == 1 and block.e_delta is not None and b" X" in raw and b" B" in raw:
                 words.append(block.words)
-    p, n, _ = profile.kinematics.forward(np.array(words), tcp=False)
+            if len(words) == limit:
+                break
+    return profile.kinematics.forward(np.array(words), tcp=False)[0]
+
+
+def test_model_1_reads_as_its_34114_waypoints():
+    gcode = corpus_path("multiaxis_3dp_motionplanning", "model_1_Gcode.txt")
+    folder = corpus_path("multiaxis_3dp_motionplanning", "model_1", "waypoint")
+    expected = np.concatenate([np.loadtxt(folder / f"{i}.txt")[:, :3] for i in range(1, 18)])
+    p = printed_points(gcode, "multiaxis-3dp-bc")
     assert len(p) == 34114 == len(expected)
     assert np.abs(p - expected).max() < 0.005
 
@@ -214,16 +221,6 @@ def test_ring_program_reads_as_its_first_layer_waypoints():
     gcode = corpus_path("s3_deformfdm", "ring_Gcode.txt")
     waypoints = np.loadtxt(corpus_path("s3_deformfdm", "ring_waypoint", "0.txt"))
     expected = np.stack([waypoints[:, 0], -waypoints[:, 2], waypoints[:, 1]], axis=1)
-    profile = load_profile("s3-deformfdm-bc")
-    interp = Interpreter(profile, str(gcode))
-    words = []
-    with open(gcode, "rb") as handle:
-        for lineno, raw in enumerate(handle, start=1):
-            block = interp.feed(lineno, raw.decode("latin-1"))
-            if block.motion == 1 and block.e_delta is not None and b" B" in raw and b" X" in raw:
-                words.append(block.words)
-            if len(words) == len(expected):
-                break
-    p, _, _ = profile.kinematics.forward(np.array(words), tcp=False)
+    p = printed_points(gcode, "s3-deformfdm-bc", limit=len(expected))
     # The program prints 2 decimals: each coordinate is within 0.005 mm, the point within 0.0087.
     assert np.abs(p - expected).max() < 0.0087

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ncfix.nc.plain import MAX_DIGITS, PlainParse
+from ncfix.nc.plain import MAX_DIGITS, PlainParse, PlainReader
 
 try:
     from numba import njit
@@ -90,17 +90,13 @@ def _scan(data, starts, ends, column, g_column, pow10, plain, neutral, values): 
         plain[line] = ok
 
 
-class PlainReaderJit:
+class PlainReaderJit(PlainReader):
     """Drop-in for PlainReader (see the module docstring)."""
 
     available = njit is not None
 
     def __init__(self, letters: tuple[str, ...]):
-        self.letters = letters
-        self.column = np.full(256, -1, dtype=np.int64)
-        for i, letter in enumerate(letters):
-            self.column[ord(letter)] = i
-        self.g_column = letters.index("G")
+        super().__init__(letters)
         self._scan = _compiled()
 
     def parse(self, lines: list[bytes]) -> PlainParse:
