@@ -38,10 +38,28 @@ def read_chunks(stream: BinaryIO, interpreter: Interpreter, lines_per_chunk: int
 
 
 def build_stages(options: Options, profile: Profile, report: Report) -> list[Stage]:
-    if options.head is not None:
-        raise NcfixError("collision checking with --head is not available in this version of ncfix",
-                         fix="run without --head to read and pass the program through")
-    return []
+    """The window stages for these options: none without --head, else the collision checker."""
+    if options.head is None:
+        return []
+    from pathlib import Path
+
+    from ncfix.collision.checker import Checker, CheckStage
+    from ncfix.collision.head import build_head_model
+    from ncfix.geometry.mesh import load_head, load_mesh
+
+    head = load_head(options.head, options.head_tip, options.head_axis)
+    report.warnings.extend(head.warnings)
+    parts = []
+    for path in options.part:
+        loaded = load_mesh(path, "part")
+        report.warnings.extend(loaded.warnings)
+        parts.append((f"part:{Path(path).name}", loaded.mesh, loaded.closed))
+    model = build_head_model(head.mesh, options.pitch)
+    report.details.append(model.summary())
+    checker = Checker(head.mesh, model, parts, pitch_mm=options.pitch, clearance_mm=options.clearance,
+                      bead_radius_mm=options.bead_radius, tip_allowance_mm=options.tip_allowance,
+                      device=options.device)
+    return [CheckStage(checker, profile, options, report)]
 
 
 def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>") -> Report:

@@ -26,6 +26,7 @@ class Report:
     unresolved: list[dict[str, Any]] = field(default_factory=list)
     collisions: list[dict[str, Any]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    details: list[str] = field(default_factory=list)  # shown with -v (e.g. the head model's counts)
     diff_lines: list[tuple[int, str, str]] = field(default_factory=list)  # (line, before, after)
 
     def count(self, chunk: "Chunk") -> None:

@@ -1,0 +1,191 @@
+"""Benchmark of the collision checker (not a test): prints a table, medians over --runs runs.
+
+    /work/venv/bin/python bench/check.py                 # 273 / 5,000 bathtub, 10k / 100k / 1M clean
+    /work/venv/bin/python bench/check.py --sizes 10000 --runs 3
+
+Bathtub workloads (samples/, ijk profile, mold part, deposit model on): time per stage (load,
+head model, grids, check, report), peak RSS, and the exact reference (coal, ExactReference.collides)
+on the same poses the checker tested (end poses and sweep samples; timed on up to 3,000 of them
+and scaled), as a ratio. Clean workloads: generated layered prints (100 x 100 mm, 2 mm line
+spacing, 1 mm blocks, 1.5 mm layers, vertical head) on a slab, deposit model on (M3 after the plunge to the first point, --deposit-codes M3,M5),
+nothing collides; blocks/s of the whole check stage and peak RSS. Each workload runs in its own process
+so that its peak memory is its own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLES = REPO / "samples"
+sys.path.insert(0, str(SAMPLES))
+
+
+def _rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _clean_points(blocks: int) -> tuple[np.ndarray, np.ndarray]:
+    """A layered raster print: ``blocks`` points 1 mm apart, 2 mm between lines, 1.5 mm layers."""
+    per_line, lines_per_layer = 100, 50
+    i = np.arange(blocks)
+    step = i % per_line
+    line = (i // per_line) % lines_per_layer
+    layer = i // (per_line * lines_per_layer)
+    x = np.where(line % 2 == 0, step, per_line - 1 - step) - 50.0
+    y = line * 2.0 - 50.0
+    z = layer * 1.5
+    return np.stack([x, y, z], axis=1).astype(np.float64), np.tile([0.0, 0.0, 1.0], (blocks, 1))
+
+
+def one(kind: str, size: int) -> dict:
+    """One workload in this process -> timings (s), poses, blocks, peak RSS (MB)."""
+    t0 = time.perf_counter()
+    import torch  # noqa: F401  (import time is not the checker's)
+
+    from ncfix.collision.checker import Checker, CheckStage
+    from ncfix.collision.head import build_head_model
+    from ncfix.config import Options
+    from ncfix.geometry.mesh import load_head, load_mesh
+    from ncfix.nc.modal import Interpreter
+    from ncfix.nc.post import post_program
+    from ncfix.pipeline import read_chunks
+    from ncfix.profiles import load_profile
+    from ncfix.report import Report
+
+    profile = load_profile("ijk")
+    out: dict = {"import": time.perf_counter() - t0}
+    tmp = Path(tempfile.mkdtemp())
+    if kind == "bathtub":
+        from make_samples import bathtub_path
+
+        t = time.perf_counter()
+        head = load_head(SAMPLES / "deposition_head.stl").mesh
+        part = load_mesh(SAMPLES / "recreated_mold.stl", "part").mesh
+        out["load"] = time.perf_counter() - t
+        P, N = bathtub_path(size, part)
+        program = tmp / "bathtub.nc"
+        with open(program, "w") as f:
+            f.writelines(post_program(profile, P, N, title="bench"))
+        parts = [("part:recreated_mold.stl", part, True)]
+    else:
+        import trimesh
+
+        t = time.perf_counter()
+        head = load_head(SAMPLES / "deposition_head.stl").mesh
+        part = trimesh.creation.box(extents=(120.0, 120.0, 5.0))
+        part.apply_translation((0.0, 0.0, -3.5))
+        out["load"] = time.perf_counter() - t
+        program = tmp / "clean.nc"
+        with open(program, "w") as f:
+            for a in range(0, size, 200_000):
+                P, N = _clean_points(min(size, a + 200_000))
+                P, N = P[a:], N[a:]
+                lines = list(post_program(profile, P, N, title="bench"))
+                if a:  # continue the same program: only the body
+                    lines = [line for line in lines if line.startswith("N") and " X" in line][1:-1]
+                else:  # deposit from the first point on (M3), not on the plunge to it
+                    first = next(i for i, line in enumerate(lines) if " G1 " in line)
+                    lines.insert(first + 1, "M3\n")
+                f.writelines(lines)
+        parts = [("part:slab", part, True)]
+    options = Options(head="head.stl", check=True, device="cpu",
+                      deposit_codes=("M3", "M5") if kind == "clean" else None)
+    t = time.perf_counter()
+    model = build_head_model(head, options.pitch)
+    out["head model"] = time.perf_counter() - t
+    t = time.perf_counter()
+    checker = Checker(head, model, parts, pitch_mm=options.pitch, bead_radius_mm=options.bead_radius,
+                      tip_allowance_mm=options.tip_allowance, device="cpu")
+    out["grids"] = time.perf_counter() - t
+
+    recorded: list[tuple[np.ndarray, np.ndarray]] = []
+    if kind == "bathtub":
+        original = checker.check_parts
+
+        def recording(C, R, margin):
+            recorded.append((C.copy(), R.copy()))
+            return original(C, R, margin)
+
+        checker.check_parts = recording  # type: ignore[method-assign]
+    report = Report(input=str(program), machine=profile.name, options=options)
+    stage = CheckStage(checker, profile, options, report)
+    t = time.perf_counter()
+    blocks = 0
+    with open(program, "rb") as src:
+        for chunk in read_chunks(src, Interpreter(profile, str(program), options.deposit_codes)):
+            for c in stage.push(chunk):
+                report.count(c)
+        stage.flush()
+    out["check"] = time.perf_counter() - t
+    blocks = report.summary["motion_blocks"]
+    t = time.perf_counter()
+    json.dumps(report.to_json())
+    out["report"] = time.perf_counter() - t
+    out["blocks"] = blocks
+    out["poses"] = checker.stats.poses
+    out["colliding"] = report.summary["colliding_blocks_before"]
+    out["beads"] = stage.store.count
+    out["peak_mb"] = _rss_mb()
+    if recorded:
+        C = np.concatenate([c for c, _ in recorded])
+        R = np.concatenate([r for _, r in recorded])
+        pick = np.random.default_rng(0).choice(len(C), size=min(3000, len(C)), replace=False)
+        t = time.perf_counter()
+        for i in pick:
+            checker.reference.collides(C[i], R[i])
+        out["exact"] = (time.perf_counter() - t) * len(C) / len(pick)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=5)
+    parser.add_argument("--sizes", default="273,5000,10000,100000,1000000",
+                        help="bathtub sizes (273, 5000) and clean program sizes (others)")
+    parser.add_argument("--one", nargs=2, metavar=("KIND", "SIZE"), help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.one:
+        print(json.dumps(one(args.one[0], int(args.one[1]))))
+        return 0
+    rows = []
+    for size in (int(s) for s in args.sizes.split(",")):
+        kind = "bathtub" if size in (273, 5000) else "clean"
+        runs = []
+        for _ in range(args.runs):
+            res = subprocess.run([sys.executable, __file__, "--one", kind, str(size)], capture_output=True,
+                                 text=True, check=True)
+            runs.append(json.loads(res.stdout.strip().splitlines()[-1]))
+        med = {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
+        rows.append((kind, size, med))
+        _print([rows[-1]])
+    print()
+    _print(rows)
+    return 0
+
+
+def _print(rows) -> None:
+    head = (f"{'workload':<16}{'blocks':>9}{'poses':>10}{'hits':>6}{'load':>7}{'model':>7}{'grids':>7}"
+            f"{'check':>8}{'report':>7}{'blocks/s':>10}{'poses/s':>9}{'exact':>8}{'ratio':>7}{'peak MB':>9}")
+    print(head)
+    for kind, size, m in rows:
+        exact = m.get("exact")
+        ratio = f"{exact / m['check']:.1f}x" if exact else "-"
+        print(f"{kind + ' ' + str(size):<16}{int(m['blocks']):>9}{int(m['poses']):>10}{int(m['colliding']):>6}"
+              f"{m['load']:>7.2f}{m['head model']:>7.2f}{m['grids']:>7.2f}{m['check']:>8.2f}{m['report']:>7.3f}"
+              f"{m['blocks'] / m['check']:>10.0f}{m['poses'] / m['check']:>9.0f}"
+              f"{(f'{exact:.2f}' if exact else '-'):>8}{ratio:>7}{m['peak_mb']:>9.0f}")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

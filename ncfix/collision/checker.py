@@ -1,0 +1,568 @@
+"""The conservative, windowed collision checker: head balls vs part distance grids, beads vs head.
+
+Parts (torch, batched, float64 arithmetic on float32 grid values): the head model's covering
+balls are tested in a hierarchy (bounding spheres of ~44 groups, then ~4 mm sub-groups, then
+the balls) against each part's ``DistanceGrid``. A pose is *free* of a part when every ball is
+farther than radius + margin + clearance by the grid's lower bound; otherwise it is *undecided*
+and the exact test decides (coal BVH head vs part mesh, plus containment, plus the exact distance
+when a margin is asked for). A grid never says "collides" on its own, so it adds no false alarms,
+only work; and since the covering balls hold the head and the grid bound is a lower bound, a
+pose the grid calls free is free.
+
+Deposit (numpy/scipy): bead centres near the head's group spheres are found in the bead store's
+k-d trees; beads laid after the pose (sequence number) and beads wholly below the tip allowance
+plane are dropped exactly; the rest are tested against a distance grid of the head above the tip
+allowance (head frame); beads the grid cannot clear go to the exact signed distance to the
+clipped head (the reference's own function). Same one-sided logic: the grid only clears.
+
+Sweeps: between two motion points the words are interpolated as the controller does (linear in
+axis angles, great circle for tool vectors via normalised linear interpolation of unit vectors)
+and the pose is sampled so that no point of the head moves more than the pitch between samples
+(|ΔC| + ρ·θ, ρ = the head's largest distance from its tip). Sample k is checked with an extra
+margin d_k = |ΔC| + ρ·θ to sample k−1: every pose in between lies within d_k of sample k, so
+the sampled checks cover the continuous sweep. The sweep belongs to the block that ends it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import trimesh
+
+from ncfix.collision.deposit import BeadStore
+from ncfix.collision.grid import DistanceGrid, build_distance_grid
+from ncfix.collision.head import HeadModel
+from ncfix.reference import ExactReference
+
+# Sub-group edge (mm) between the head model's ~44 groups and its balls: small enough that a
+# sub-group near a body holds a few dozen balls, large enough that there are only ~2,000.
+SUBGROUP_EDGE_MM = 4.0
+# A pose with more failing sub-groups than this goes straight to the exact test: expanding them
+# to balls would cost more than the exact test and could only end in "undecided" anyway.
+MAX_FAILING_SUBGROUPS = 48
+# Poses per torch batch (memory: ~44 groups x 3 float64 per pose, sub-groups on demand).
+POSE_BATCH = 2048
+# Poses per deposit batch: beads laid before a batch are committed to the k-d trees, so the
+# sequence filter only applies to the batch's own beads.
+DEPOSIT_BATCH = 256
+
+
+def resolve_device(name: str) -> str:
+    """'auto' → 'cuda' when torch sees a GPU, else 'cpu'."""
+    import torch
+
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return name
+
+
+@dataclass
+class HeadHierarchy:
+    """The head model's balls sorted by (group, sub-group), with CSR ranges, as torch tensors."""
+
+    g_centers: object
+    g_radii: object
+    g_sub_start: object
+    g_sub_count: object
+    s_centers: object
+    s_radii: object
+    s_ball_start: object
+    s_ball_count: object
+    b_centers: object
+    b_radii: object
+    n_balls: int
+    n_subgroups: int
+    n_groups: int
+
+
+def build_hierarchy(model: HeadModel, device: str) -> HeadHierarchy:
+    import torch
+
+    c, r, g = model.centers_mm, model.radii_mm, model.group
+    lo = c.min(axis=0)
+    cell = np.floor((c - lo) / SUBGROUP_EDGE_MM).astype(np.int64)
+    dims = cell.max(axis=0) + 1
+    key = (g * dims[0] + cell[:, 0]) * dims[1] * dims[2] + cell[:, 1] * dims[2] + cell[:, 2]
+    order = np.lexsort((key, g))
+    c, r, g, key = c[order], r[order], g[order], key[order]
+    ukey, b_start, b_count = np.unique(key, return_index=True, return_counts=True)
+    sub_of = np.repeat(np.arange(len(ukey)), b_count)
+    s_group = g[b_start]
+    s_lo = np.full((len(ukey), 3), np.inf)
+    s_hi = np.full((len(ukey), 3), -np.inf)
+    np.minimum.at(s_lo, sub_of, c - r[:, None])
+    np.maximum.at(s_hi, sub_of, c + r[:, None])
+    s_c = 0.5 * (s_lo + s_hi)
+    s_r = np.zeros(len(ukey))
+    np.maximum.at(s_r, sub_of, np.linalg.norm(c - s_c[sub_of], axis=1) + r)
+    n_groups = len(model.group_radii_mm)
+    g_count = np.bincount(s_group, minlength=n_groups)
+    g_start = np.cumsum(g_count) - g_count
+    t = lambda a, dt=torch.float64: torch.as_tensor(np.ascontiguousarray(a), dtype=dt, device=device)  # noqa: E731
+    return HeadHierarchy(
+        g_centers=t(model.group_centers_mm), g_radii=t(model.group_radii_mm),
+        g_sub_start=t(g_start, torch.int64), g_sub_count=t(g_count, torch.int64),
+        s_centers=t(s_c), s_radii=t(s_r), s_ball_start=t(b_start, torch.int64), s_ball_count=t(b_count, torch.int64),
+        b_centers=t(c), b_radii=t(r), n_balls=len(r), n_subgroups=len(ukey), n_groups=n_groups,
+    )
+
+
+def _expand(pair_pose, pair_item, start, count):
+    """CSR expansion: each (pose, item) pair → (pose, child) for the item's children."""
+    import torch
+
+    n = count[pair_item]
+    pose = torch.repeat_interleave(pair_pose, n)
+    first = torch.repeat_interleave(start[pair_item], n)
+    offset = torch.arange(int(n.sum()), device=pose.device) - torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
+    return pose, first + offset
+
+
+@dataclass
+class Part:
+    name: str  # "part:mold.stl"
+    grid: DistanceGrid
+    mesh: trimesh.Trimesh
+
+
+@dataclass
+class PoseResult:
+    """Per pose: which parts it hits (n, n_parts) bool, whether it hits deposit (n,) bool,
+    and the deposit clearance found by the exact test (n,) float64 (+inf when not tested)."""
+
+    part_hit: np.ndarray
+    deposit_hit: np.ndarray
+    deposit_clearance: np.ndarray
+
+
+@dataclass
+class CheckerStats:
+    poses: int = 0
+    part_undecided: int = 0
+    deposit_undecided: int = 0
+    exact_bead_tests: int = 0
+    seconds: dict = field(default_factory=dict)
+
+
+class Checker:
+    """Array-level checker: head pose batches against parts and beads (see module doc).
+
+    head : closed trimesh in the head frame (tip at the origin, axis +Z)
+    parts : (name, mesh, closed) in workpiece mm; names as the report shows them
+    """
+
+    def __init__(self, head: trimesh.Trimesh, model: HeadModel, parts: list[tuple[str, trimesh.Trimesh, bool]], *,
+                 pitch_mm: float, clearance_mm: float = 0.0, bead_radius_mm: float = 1.0,
+                 tip_allowance_mm: float = 1.0, device: str = "cpu", part_bounds_mm: np.ndarray | None = None):
+        import torch
+
+        self.device = resolve_device(device)
+        self.torch = torch
+        self.pitch_mm = float(pitch_mm)
+        self.clearance_mm = float(clearance_mm)
+        self.bead_radius_mm = float(bead_radius_mm)
+        self.tip_allowance_mm = float(tip_allowance_mm)
+        self.model = model
+        self.head = head
+        self.rho_mm = float(np.linalg.norm(head.vertices, axis=1).max())
+        self.hier = build_hierarchy(model, self.device)
+        self.parts = [Part(name, build_distance_grid(mesh, pitch_mm, closed=closed, name=name, bounds_mm=part_bounds_mm),
+                           mesh) for name, mesh, closed in parts]
+        self.reference = ExactReference(head, {p.name: p.mesh for p in self.parts},
+                                        tip_allowance_mm=self.tip_allowance_mm)
+        self.stats = CheckerStats()
+        if self.bead_radius_mm > 0:
+            clipped = self.reference._bead_head
+            # The head above the allowance, in the head frame, at the pitch.
+            self.head_grid = build_distance_grid(clipped, self.pitch_mm, closed=True, name="head")
+            # Only balls reaching above the allowance plane can meet a bead (same groups).
+            above = model.centers_mm[:, 2] + model.radii_mm > self.tip_allowance_mm
+            dep_model = replace(model, centers_mm=model.centers_mm[above], radii_mm=model.radii_mm[above],
+                                zone=model.zone[above], interior=model.interior[above], group=model.group[above])
+            h = build_hierarchy(dep_model, "cpu")
+            self.dep_hier = {k: (v.numpy() if hasattr(v, "numpy") else v) for k, v in vars(h).items()}
+
+    # -- parts -------------------------------------------------------------------------------
+    def _part_undecided(self, grid: DistanceGrid, C, R, margin) -> np.ndarray:
+        """Indices of poses (torch batch) the grid cannot clear of this part."""
+        torch = self.torch
+        h = self.hier
+        n = C.shape[0]
+        pos = C[:, None, :] + torch.einsum("nij,gj->ngi", R, h.g_centers)
+        lb = grid.lower_bound(pos.reshape(-1, 3)).reshape(n, -1)
+        fail = lb <= h.g_radii[None, :] + margin[:, None] + self.clearance_mm
+        pose, grp = fail.nonzero(as_tuple=True)
+        if len(pose) == 0:
+            return np.zeros(0, dtype=np.int64)
+        pose, sub = _expand(pose, grp, h.g_sub_start, h.g_sub_count)
+        pos = C[pose] + torch.einsum("nij,nj->ni", R[pose], h.s_centers[sub])
+        fail = grid.lower_bound(pos) <= h.s_radii[sub] + margin[pose] + self.clearance_mm
+        pose, sub = pose[fail], sub[fail]
+        if len(pose) == 0:
+            return np.zeros(0, dtype=np.int64)
+        per_pose = torch.bincount(pose, minlength=n)
+        crowded = per_pose > MAX_FAILING_SUBGROUPS
+        keep = ~crowded[pose]
+        pose, sub = pose[keep], sub[keep]
+        undecided = crowded.clone()
+        if len(pose):
+            pose, ball = _expand(pose, sub, h.s_ball_start, h.s_ball_count)
+            pos = C[pose] + torch.einsum("nij,nj->ni", R[pose], h.b_centers[ball])
+            fail = grid.lower_bound(pos) <= h.b_radii[ball] + margin[pose] + self.clearance_mm
+            undecided[pose[fail]] = True
+        return undecided.nonzero().reshape(-1).cpu().numpy()
+
+    def _exact_part(self, k: int, c: np.ndarray, r: np.ndarray, margin: float) -> bool:
+        import coal
+
+        ref = self.reference
+        part = ref.parts[k]
+        tf = coal.Transform3s(r, c)
+        cres = coal.CollisionResult()
+        if coal.collide(ref._head_bvh, tf, part.bvh, coal.Transform3s(), ref._creq, cres) > 0:
+            return True
+        if ref._nested(part, c, r):
+            return True
+        need = margin + self.clearance_mm
+        if need > 0:
+            dres = coal.DistanceResult()
+            d = coal.distance(ref._head_bvh, tf, part.bvh, coal.Transform3s(), ref._dreq, dres)
+            return bool(d < need)
+        return False
+
+    def check_parts(self, C: np.ndarray, R: np.ndarray, margin: np.ndarray) -> np.ndarray:
+        """(n, n_parts) bool: which parts each pose (tip C (n, 3), rotation R (n, 3, 3)) hits."""
+        torch = self.torch
+        n = len(C)
+        out = np.zeros((n, len(self.parts)), dtype=bool)
+        for a in range(0, n, POSE_BATCH):
+            b = min(n, a + POSE_BATCH)
+            Ct = torch.as_tensor(C[a:b], dtype=torch.float64, device=self.device)
+            Rt = torch.as_tensor(R[a:b], dtype=torch.float64, device=self.device)
+            Mt = torch.as_tensor(margin[a:b], dtype=torch.float64, device=self.device)
+            for k, part in enumerate(self.parts):
+                for i in self._part_undecided(part.grid, Ct, Rt, Mt):
+                    j = a + int(i)
+                    self.stats.part_undecided += 1
+                    out[j, k] = self._exact_part(k, C[j], R[j], float(margin[j]))
+        return out
+
+    # -- deposit -----------------------------------------------------------------------------
+    def _deposit_pairs(self, C, R, extra, near):
+        """(pose, sub-group) pairs whose sphere may come within its radius + extra of a bead (numpy).
+
+        Beads are then fetched per sub-group (not per ball): fewer queries and duplicates, and the
+        head grid prunes the few extra candidates exactly as well."""
+        h = self.dep_hier
+        n = len(C)
+        pos = C[:, None, :] + np.einsum("nij,gj->ngi", R, h["g_centers"])
+        reach = h["g_radii"][None, :] + extra[:, None]
+        fail = near(pos.reshape(-1, 3), reach.reshape(-1)).reshape(n, -1)
+        pose, item = np.nonzero(fail)
+        for level in ("s",):
+            if len(pose) == 0:
+                break
+            parent = "g" if level == "s" else "s"
+            start = h[f"{parent}_sub_start"] if level == "s" else h["s_ball_start"]
+            count = h[f"{parent}_sub_count"] if level == "s" else h["s_ball_count"]
+            cnt = count[item]
+            pose = np.repeat(pose, cnt)
+            item = np.repeat(start[item], cnt) + (np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt))
+            centers = h["s_centers"] if level == "s" else h["b_centers"]
+            radii = h["s_radii"] if level == "s" else h["b_radii"]
+            pos = C[pose] + np.einsum("nij,nj->ni", R[pose], centers[item])
+            ok = near(pos, radii[item] + extra[pose])
+            pose, item = pose[ok], item[ok]
+        return pose, item
+
+    def check_deposit(self, C: np.ndarray, R: np.ndarray, margin: np.ndarray, seq: np.ndarray,
+                      store: BeadStore, pending: np.ndarray, pending_seq: np.ndarray,
+                      step_mm: np.ndarray | None = None, turn_rad: np.ndarray | None = None,
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """Deposit hits (n,) bool and exact clearances (n,) (+inf where the grid cleared).
+
+        store : beads laid before every pose of the batch; pending (m, 3) / pending_seq (m,):
+        beads of the current window, seen by poses with seq >= their pending_seq.
+        margin : (n,) sweep margin, |ΔC| + ρ·θ; with step_mm = |ΔC| (n,) and turn_rad = θ (n,)
+        the margin near a bead is tightened to |ΔC| + θ·(reach of the head points that can
+        touch it): a head point at distance r from the tip moves at most |ΔC| + r·θ.
+        """
+        from scipy.spatial import cKDTree
+
+        from ncfix.collision.deposit import query_pairs
+
+        n = len(C)
+        hit = np.zeros(n, dtype=bool)
+        clearance = np.full(n, np.inf)
+        if self.bead_radius_mm <= 0 or n == 0 or (store.count == 0 and len(pending) == 0):
+            return hit, clearance
+        bead_r = self.bead_radius_mm
+        ta = self.tip_allowance_mm
+        extra = bead_r + margin + self.clearance_mm
+        pend_tree = cKDTree(pending) if len(pending) else None
+
+        def near(points, reach):
+            upper = float(reach.max()) if len(reach) else 0.0
+            d = store.nearest(points, upper) if store.count else np.full(len(points), np.inf)
+            if pend_tree is not None:
+                d = np.minimum(d, pend_tree.query(points, k=1, distance_upper_bound=upper)[0])
+            return d <= reach
+
+        pose, sub = self._deposit_pairs(C, R, extra, near)
+        if len(pose) == 0:
+            return hit, clearance
+        h = self.dep_hier
+        centers = C[pose] + np.einsum("nij,nj->ni", R[pose], h["s_centers"][sub])
+        radii = h["s_radii"][sub] + extra[pose]
+        poses, ids, pts, fresh = [], [], [], []
+        if store.count:
+            q, gid, p = store.within(centers, radii)
+            poses.append(pose[q]), ids.append(gid), pts.append(p), fresh.append(np.zeros(len(q), dtype=bool))
+        if pend_tree is not None:
+            q, idx = query_pairs(pend_tree, centers, radii)
+            seen = pending_seq[idx] <= seq[pose[q]]
+            poses.append(pose[q][seen]), ids.append(idx[seen] + store.count), pts.append(pending[idx[seen]])
+            fresh.append(pending_seq[idx[seen]] == seq[pose[q][seen]])
+        pose = np.concatenate(poses)
+        if len(pose) == 0:
+            return hit, clearance
+        gid, pts, fresh = np.concatenate(ids), np.concatenate(pts), np.concatenate(fresh)
+        # One test per (pose, bead): a bead is found through several balls.
+        _, first = np.unique(pose * (store.count + len(pending) + 1) + gid, return_index=True)
+        pose, pts, fresh = pose[first], pts[first], fresh[first]
+        local = np.einsum("nji,nj->ni", R[pose], pts - C[pose])  # R^T (b - C): head frame
+        # A bead laid in this very step exists only once the head reaches this sample: the poses
+        # swept since the previous sample never see it, so it gets no sweep margin.
+        swept = margin[pose]
+        if step_mm is not None and turn_rad is not None:
+            reach = np.linalg.norm(local, axis=1) + bead_r + self.clearance_mm + swept
+            swept = np.minimum(swept, step_mm[pose] + turn_rad[pose] * reach)
+        need = bead_r + self.clearance_mm + np.where(fresh, 0.0, swept)
+        # Beads wholly below the allowance plane cannot reach the checked head (exact).
+        keep = local[:, 2] + need > ta
+        # The head grid clears the rest where it can (a lower bound on the distance to the head).
+        lb = np.full(len(pose), -np.inf)
+        lb[keep] = self.head_grid.lower_bound_np(local[keep])
+        keep &= lb <= need
+        pose, local, need, lb = pose[keep], local[keep], need[keep], lb[keep]
+        if len(pose) == 0:
+            return hit, clearance
+        self.stats.deposit_undecided += len(np.unique(pose))
+        # Exact test in rounds, most suspect beads first; a pose stops at its first hit.
+        order = np.lexsort((lb, pose))
+        pose, local, need = pose[order], local[order], need[order]
+        starts = np.searchsorted(pose, pose, side="left")
+        rank = np.arange(len(pose)) - starts
+        lo, width = 0, 1
+        while True:
+            sel = (rank >= lo) & (rank < lo + width) & ~hit[pose]
+            if not sel.any():
+                if lo > rank.max():
+                    break
+                lo, width = lo + width, width * 2
+                continue
+            idx = np.nonzero(sel)[0]
+            self.stats.exact_bead_tests += len(idx)
+            signed = self.reference.signed_distance_to_clipped_head(local[idx]) - bead_r
+            np.minimum.at(clearance, pose[idx], signed)
+            hit[pose[idx][signed < need[idx] - bead_r]] = True
+            lo, width = lo + width, width * 2
+        return hit, clearance
+
+
+def rotation_angle(ra: np.ndarray, rb: np.ndarray) -> np.ndarray:
+    """Angle (rad) of the rotation between (n, 3, 3) pairs; robust near 0 (from the Frobenius norm)."""
+    fro = np.linalg.norm((ra - rb).reshape(len(ra), -1), axis=1)
+    return 2.0 * np.arcsin(np.clip(fro / (2.0 * np.sqrt(2.0)), 0.0, 1.0))
+
+
+class CheckStage:
+    """Pipeline stage: checks every motion block (end pose and sweep) and fills the report.
+
+    Chunks go back at once and unchanged; memory holds one chunk, at most ``window`` blocks'
+    samples at a time, the grids and the beads laid so far.
+    """
+
+    def __init__(self, checker: Checker, profile, options, report):
+        from ncfix.collision.deposit import BeadStore
+
+        self.checker = checker
+        self.kin = profile.kinematics
+        self.tcp_mode = profile.tcp
+        self.is_vector = profile.is_vector
+        self.options = options
+        self.report = report
+        self.standoff_mm = float(options.standoff)
+        self.pitch_mm = float(options.pitch)
+        self.window = int(options.window)
+        self.rule = None
+        self.prev_words: np.ndarray | None = None
+        self.prev_tcp = False
+        self.seq = 0
+        self.store = BeadStore(checker.bead_radius_mm)
+        self.unchecked = 0
+        self.arcs = 0
+        self.samples = 0
+
+    # -- stage protocol ------------------------------------------------------------------------
+    def push(self, chunk):
+        from ncfix.collision.deposit import choose_rule, depositing
+
+        if self.rule is None:
+            self.rule = choose_rule(chunk.e_delta, self.options.deposit_codes is not None,
+                                    self.checker.bead_radius_mm)
+        rows = np.nonzero(chunk.motion >= 0)[0]
+        dep = depositing(self.rule, chunk.motion, chunk.e_delta, chunk.deposit_on)
+        for a in range(0, len(rows), self.window):
+            self._check_rows(chunk, rows[a:a + self.window], dep)
+        return [chunk]
+
+    def flush(self):
+        if self.unchecked:
+            self.report.warnings.append(
+                f"{self.unchecked} motion blocks were not checked: an axis was unknown there "
+                "(after G28/G53 or an expression) or TCP switched on the block")
+        if self.arcs:
+            self.report.warnings.append(
+                f"{self.arcs} G2/G3 arc blocks were checked along their chord, not along the arc")
+        self.report.summary["checked_samples"] = self.samples
+        self.report.summary["deposit_rule"] = self.rule.value if self.rule else None
+        return []
+
+    # -- the work --------------------------------------------------------------------------------
+    def _tcp(self, chunk, rows) -> np.ndarray:
+        if self.tcp_mode == "never":
+            return np.zeros(len(rows), dtype=bool)
+        if self.tcp_mode == "always":
+            return np.ones(len(rows), dtype=bool)
+        return chunk.tcp[rows].astype(bool)
+
+    def _normalise(self, words: np.ndarray) -> np.ndarray:
+        if self.is_vector:
+            v = words[:, 3:6]
+            norm = np.linalg.norm(v, axis=1, keepdims=True)
+            words = words.copy()
+            words[:, 3:6] = np.divide(v, norm, out=np.full_like(v, np.nan), where=norm > 0)
+        return words
+
+    def _forward(self, words: np.ndarray, tcp: np.ndarray):
+        n = len(words)
+        P, N, R = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 3))
+        for flag in (False, True):
+            sel = tcp == flag
+            if sel.any():
+                P[sel], N[sel], R[sel] = self.kin.forward(words[sel], tcp=bool(flag))
+        return P, N, R
+
+    def _check_rows(self, chunk, rows: np.ndarray, dep: np.ndarray) -> None:
+        if len(rows) == 0:
+            return
+        ck = self.checker
+        tcp = self._tcp(chunk, rows)
+        w_end = self._normalise(chunk.words[rows])
+        w_start = np.empty_like(w_end)
+        w_start[1:] = w_end[:-1]
+        w_start[0] = self.prev_words if self.prev_words is not None else np.nan
+        tcp_start = np.empty_like(tcp)
+        tcp_start[1:] = tcp[:-1]
+        tcp_start[0] = self.prev_tcp
+        self.prev_words, self.prev_tcp = w_end[-1].copy(), bool(tcp[-1])
+        self.arcs += int((chunk.motion[rows] >= 2).sum())
+
+        known_end = np.isfinite(w_end).all(axis=1)
+        known_start = np.isfinite(w_start).all(axis=1) & (tcp_start == tcp) & known_end
+        self.unchecked += int((~known_end).sum())
+        rows, tcp, w_end, w_start, known_start = (x[known_end] for x in (rows, tcp, w_end, w_start, known_start))
+        if len(rows) == 0:
+            return
+        h = self.standoff_mm
+        Pe, Ne, Re = self._forward(w_end, tcp)
+        Ce = Pe + h * Ne
+        ws = np.where(known_start[:, None], w_start, w_end)
+        Ps, Ns, Rs = self._forward(ws, tcp)
+        Cs = Ps + h * Ns
+        d_est = np.linalg.norm(Ce - Cs, axis=1) + ck.rho_mm * rotation_angle(Rs, Re)
+        m = np.where(known_start, np.maximum(np.ceil(d_est / self.pitch_mm - 1e-9), 1), 1).astype(np.int64)
+        total = int(m.sum())
+        first = np.cumsum(m) - m  # index of each row's first sample
+        row_of = np.repeat(np.arange(len(rows)), m)
+        k = np.arange(total) - first[row_of] + 1
+        t = k / m[row_of]
+        words = ws[row_of] + t[:, None] * (w_end[row_of] - ws[row_of])
+        P, N, R = self._forward(self._normalise(words), tcp[row_of])
+        C = P + h * N
+        # Margin: how far any head point may be between this sample and the previous one.
+        prev_C = np.where((k == 1)[:, None], Cs[row_of], np.roll(C, 1, axis=0))
+        prev_R = np.where((k == 1)[:, None, None], Rs[row_of], np.roll(R, 1, axis=0))
+        step = np.linalg.norm(C - prev_C, axis=1)
+        turn = rotation_angle(prev_R, R)
+        first_only = (k == 1) & ~known_start[row_of]
+        step[first_only], turn[first_only] = 0.0, 0.0
+        margin = step + ck.rho_mm * turn
+        seq = self.seq + np.arange(total)
+
+        # Beads of this window: depositing moves, from start to end point, <= pitch/2 apart.
+        pend = np.zeros((0, 3))
+        pend_seq = np.zeros(0, dtype=np.int64)
+        depo = dep[rows]
+        if self.rule is not None and self.rule.name != "OFF" and depo.any():
+            from ncfix.collision.deposit import bead_samples
+
+            di = np.nonzero(depo)[0]
+            counts, tb = bead_samples(Ps[di], Pe[di], 0.5 * self.pitch_mm)
+            brow = np.repeat(di, counts)
+            bw = ws[brow] + tb[:, None] * (w_end[brow] - ws[brow])
+            pend, _, _ = self._forward(self._normalise(bw), tcp[brow])
+            # Seen from the first sample of the move at or after the bead's parameter.
+            kb = np.maximum(np.ceil(tb * m[brow] - 1e-9), 1).astype(np.int64)
+            pend_seq = self.seq + first[brow] + kb - 1
+        self.seq += total
+        self.samples += total
+
+        part_hit = ck.check_parts(C, R, margin)
+        dep_hit = np.zeros(total, dtype=bool)
+        dep_clear = np.full(total, np.inf)
+        if self.store.count or len(pend):
+            # Poses in small batches; before each, the beads every pose of it sees go into the
+            # store, so only the batch's own beads need the sequence filter (bounded work).
+            done = 0
+            for a in range(0, total, DEPOSIT_BATCH):
+                b = min(total, a + DEPOSIT_BATCH)
+                lo = int(np.searchsorted(pend_seq, seq[a], side="left"))
+                hi = int(np.searchsorted(pend_seq, seq[b - 1], side="right"))
+                if lo > done:
+                    self.store.add(pend[done:lo])
+                    done = lo
+                dep_hit[a:b], dep_clear[a:b] = ck.check_deposit(
+                    C[a:b], R[a:b], margin[a:b], seq[a:b], self.store, pend[lo:hi], pend_seq[lo:hi],
+                    step[a:b], turn[a:b])
+            self.store.add(pend[done:])
+        ck.stats.poses += total
+
+        any_hit = part_hit.any(axis=1) | dep_hit
+        if not any_hit.any():
+            return
+        for r in np.unique(row_of[any_hit]):
+            sel = np.nonzero(row_of == r)[0]
+            hits = sel[any_hit[sel]]
+            bodies = [p.name for j, p in enumerate(ck.parts) if part_hit[hits, j].any()]
+            clearance = np.inf
+            if bodies:
+                s = hits[-1]  # the end pose when it collides, else the last colliding sample
+                per_part = ck.reference.part_clearances(C[s], R[s])
+                clearance = min(per_part[b] for b in bodies)
+            if dep_hit[hits].any():
+                bodies.append("deposit")
+                clearance = min(clearance, float(dep_clear[hits].min()))
+            self._record(int(chunk.first_lineno + rows[r]), bodies, float(clearance))
+
+    def _record(self, line: int, bodies: list[str], clearance_mm: float) -> None:
+        penetration = round(max(0.0, -clearance_mm), 4)
+        rep = self.report
+        rep.summary["colliding_blocks_before"] += 1
+        rep.collisions.append({"line": line, "bodies": bodies, "penetration_mm": penetration,
+                               "clearance_mm": round(clearance_mm, 4)})
+        if not self.options.check:  # no corrector yet: the block is left as programmed
+            rep.unresolved.append({"line": line, "bodies": bodies, "penetration_mm": penetration})
+            rep.summary["unresolved_blocks"] += 1

@@ -1,0 +1,169 @@
+"""Distance grids of meshes at the pitch: a lower bound on the distance to a body, in torch.
+
+A grid is built from *marked* cells: cells whose centre is inside the closed mesh (exact, by the
+column-parity voxelizer) plus cells the surface may pass through (centre within half a cell
+diagonal of a triangle, ``surface_cells``). Every point of the body lies in the closed cube of a
+marked cell, so within ``h = pitch·√3/2`` of a marked cell centre. The Euclidean distance
+transform ``D`` gives, at each cell centre ``c``, the distance to the nearest marked centre. For
+any point ``x`` and its nearest grid cell ``c`` (clamped to the grid), distance is 1-Lipschitz, so
+
+    dist(x, body) >= D(c) - |x - c| - h        (``DistanceGrid.lower_bound``)
+
+with no assumption on where ``x`` lies. Far outside the grid that bound is loose, so the larger
+of it and the distance from ``x`` to the body's bounding box (which holds all of the body) is used.
+Every approximation (cell size, nearest-cell lookup, float32 EDT values) is inside that bound,
+so a ball of radius r at x is certainly free when ``lower_bound(x) > r + clearance``; anything
+else is *undecided* and goes to the exact test (never straight to "collides").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from ncfix.collision.voxelize import grid_frame, surface_cells, voxelize
+from ncfix.geometry.tolerances import TOLERANCES
+
+# The EDT is stored in float32 (the `edt` package computes in float32): relative error ~1e-7.
+# This absolute slack (mm) dominates it for any grid up to 10 m, and float64 query arithmetic.
+EDT_SLACK_MM = 1e-4
+# Empty cells around the body: near it, lookups then stay inside the grid (tighter bounds).
+GRID_PAD_CELLS = 6
+
+
+@dataclass
+class DistanceGrid:
+    """Distance from each cell centre to the nearest marked cell centre.
+
+    dist_mm : (nx, ny, nz) float32, mm (0 on marked cells)
+    origin_mm : (3,) float64, centre of cell (0, 0, 0), in the frame of the mesh
+    pitch_mm : cell edge
+    name : the body, as the report names it (``part:mold.stl``)
+    """
+
+    dist_mm: np.ndarray
+    origin_mm: np.ndarray
+    pitch_mm: float
+    name: str = ""
+    body_bounds_mm: np.ndarray | None = None  # (2, 3) box holding the whole body
+    _tensors: dict | None = None
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(self.dist_mm.shape)  # type: ignore[return-value]
+
+    @property
+    def margin_mm(self) -> float:
+        """What the lookup may be off by at a cell centre: half a cell diagonal plus float slack."""
+        return 0.5 * np.sqrt(3.0) * self.pitch_mm + EDT_SLACK_MM + TOLERANCES.cover_slack_mm
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.dist_mm.nbytes)
+
+    def tensors(self, device):
+        """The grid as torch tensors (distances float32, widened to float64 on lookup) on ``device`` (cached per device)."""
+        import torch
+
+        key = str(device)
+        if self._tensors is None:
+            self._tensors = {}
+        if key not in self._tensors:
+            dist = torch.as_tensor(self.dist_mm, device=device).reshape(-1)  # float32; gathered values widen exactly
+            origin = torch.as_tensor(self.origin_mm, dtype=torch.float64, device=device)
+            shape = torch.as_tensor(self.shape, dtype=torch.int64, device=device)
+            box = torch.as_tensor(np.array(self._box()), dtype=torch.float64, device=device)
+            self._tensors[key] = (dist, origin, shape, box)
+        return self._tensors[key]
+
+    def lower_bound(self, points):
+        """Lower bound (mm) on the distance from points (m, 3) float64 tensor to the body -> (m,).
+
+        Negative values mean "may be inside"; the bound is valid anywhere in space.
+        """
+        import torch
+
+        dist, origin, shape, box = self.tensors(points.device)
+        rel = (points - origin) / self.pitch_mm
+        idx = torch.round(rel).to(torch.int64)
+        idx = torch.minimum(torch.maximum(idx, torch.zeros_like(idx)), shape - 1)
+        centre = origin + idx.to(torch.float64) * self.pitch_mm
+        flat = (idx[:, 0] * shape[1] + idx[:, 1]) * shape[2] + idx[:, 2]
+        off = torch.linalg.vector_norm(points - centre, dim=1)
+        gap = torch.clamp(torch.maximum(box[0] - points, points - box[1]), min=0.0)
+        outside = torch.linalg.vector_norm(gap, dim=1)
+        return torch.maximum(dist[flat].to(torch.float64) - off - self.margin_mm, outside)
+
+    def _box(self) -> np.ndarray:
+        if self.body_bounds_mm is None:
+            return np.array([[-np.inf] * 3, [np.inf] * 3])
+        return np.asarray(self.body_bounds_mm, dtype=np.float64)
+
+    def lower_bound_np(self, points: np.ndarray) -> np.ndarray:
+        """The same bound in numpy (points (m, 3) float64 mm) -> (m,) float64."""
+        rel = (np.asarray(points, dtype=np.float64) - self.origin_mm) / self.pitch_mm
+        idx = np.clip(np.round(rel).astype(np.int64), 0, np.array(self.shape) - 1)
+        centre = self.origin_mm + idx * self.pitch_mm
+        off = np.linalg.norm(points - centre, axis=1)
+        box = self._box()
+        outside = np.linalg.norm(np.maximum(np.maximum(box[0] - points, points - box[1]), 0.0), axis=1)
+        grid = self.dist_mm[idx[:, 0], idx[:, 1], idx[:, 2]].astype(np.float64) - off - self.margin_mm
+        return np.maximum(grid, outside)
+
+
+def marked_cells(mesh: trimesh.Trimesh, closed: bool, pitch_mm: float, origin_mm: np.ndarray,
+                 shape: tuple[int, int, int]) -> np.ndarray:
+    """Cells (nx, ny, nz) bool whose closed cube may hold a point of the body (see module doc).
+
+    An open (surface-only) mesh marks only the cells its triangles may pass through.
+    """
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    f = np.asarray(mesh.faces, dtype=np.int64)
+    half_diagonal = 0.5 * np.sqrt(3.0) * pitch_mm
+    marked = surface_cells(v, f, origin_mm, shape, pitch_mm, half_diagonal + TOLERANCES.cover_slack_mm)
+    if closed:
+        marked |= voxelize(v, f, pitch_mm, origin_mm=origin_mm, shape=shape).occupancy
+    return marked
+
+
+def distance_transform(free: np.ndarray, pitch_mm: float) -> np.ndarray:
+    """Euclidean distance (mm, float32) from each True cell to the nearest False cell."""
+    if not (~free).any():
+        return np.full(free.shape, np.float32(1e9), dtype=np.float32)
+    try:
+        import edt
+
+        return edt.edt(free, anisotropy=(pitch_mm,) * 3, black_border=False, parallel=2).astype(np.float32)
+    except ImportError:  # scipy: same values, about 4x slower
+        from scipy import ndimage
+
+        return ndimage.distance_transform_edt(free, sampling=pitch_mm).astype(np.float32)
+
+
+def build_distance_grid(mesh: trimesh.Trimesh, pitch_mm: float, *, closed: bool = True, name: str = "",
+                        bounds_mm: np.ndarray | None = None) -> DistanceGrid:
+    """Distance grid of a mesh at ``pitch_mm``.
+
+    bounds_mm : (2, 3) region to cover (default: the mesh's bounds); it is intersected with the
+        mesh's bounds (no body outside them) and padded by two cells. Lookups outside the grid
+        stay valid lower bounds, only looser.
+    """
+    bounds = np.asarray(mesh.bounds, dtype=np.float64)
+    cropped = False
+    if bounds_mm is not None:
+        crop = np.asarray(bounds_mm, dtype=np.float64)
+        lo, hi = np.maximum(bounds[0], crop[0]), np.minimum(bounds[1], crop[1])
+        if (lo <= hi).all() and ((lo > bounds[0]) | (hi < bounds[1])).any():
+            bounds, cropped = np.array([lo, hi]), True
+    origin, shape = grid_frame(bounds, pitch_mm, pad_cells=GRID_PAD_CELLS)
+    marked = marked_cells(mesh, closed, pitch_mm, origin, shape)
+    if cropped:
+        # The body goes on beyond the grid: the outer layer stands for it (any path from inside
+        # the grid to that material crosses the layer), so the bound stays a lower bound.
+        for axis in range(3):
+            marked[(slice(None),) * axis + (0,)] = True
+            marked[(slice(None),) * axis + (-1,)] = True
+    return DistanceGrid(distance_transform(~marked, pitch_mm), origin, float(pitch_mm), name,
+                        np.asarray(mesh.bounds, dtype=np.float64))

@@ -1,0 +1,494 @@
+"""The collision checker: zero misses against the exact reference, few false alarms, deposit model,
+streaming through the pipeline, and identical decisions on CPU and CUDA."""
+
+from __future__ import annotations
+
+import io
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ncfix.collision.checker import Checker, CheckStage
+from ncfix.collision.deposit import BeadStore, DepositRule, choose_rule, depositing
+from ncfix.collision.grid import build_distance_grid
+from ncfix.collision.head import build_head_model
+from ncfix.config import Options
+from ncfix.geometry.distance import point_mesh_distance, winding_numbers
+from ncfix.geometry.frames import rotation_from_z
+from ncfix.geometry.mesh import load_head, load_mesh
+from ncfix.nc.post import post_program
+from ncfix.pipeline import run
+from ncfix.profiles import load_profile
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLES = REPO / "samples"
+HEAD = SAMPLES / "deposition_head.stl"
+MOLD = SAMPLES / "recreated_mold.stl"
+sys.path.insert(0, str(SAMPLES))
+from make_samples import bathtub_path  # noqa: E402
+
+PITCH = 0.5
+
+
+@pytest.fixture(scope="module")
+def meshes():
+    return load_head(HEAD).mesh, load_mesh(MOLD, "part").mesh
+
+
+@pytest.fixture(scope="module")
+def checker(meshes):
+    head, mold = meshes
+    model = build_head_model(head, PITCH)
+    return Checker(head, model, [("part:recreated_mold.stl", mold, True)], pitch_mm=PITCH, device="cpu")
+
+
+def _rates(name: str, flagged: np.ndarray, truth: np.ndarray) -> tuple[int, float]:
+    misses = int((truth & ~flagged).sum())
+    false = int((flagged & ~truth).sum())
+    rate = false / len(truth)
+    print(f"\n{name}: {len(truth)} poses, {int(truth.sum())} colliding, misses {misses}, "
+          f"false alarms {false} ({rate:.2%})")
+    return misses, rate
+
+
+def _random_rotations(rng, n: int, max_tilt_deg: float) -> np.ndarray:
+    """Head rotations with the axis within max_tilt of vertical and a random spin about it."""
+    tilt = np.radians(max_tilt_deg) * np.sqrt(rng.random(n))
+    phi = rng.random(n) * 2 * np.pi
+    axis = np.stack([np.sin(tilt) * np.cos(phi), np.sin(tilt) * np.sin(phi), np.cos(tilt)], axis=1)
+    spin = rng.random(n) * 2 * np.pi
+    c, s = np.cos(spin), np.sin(spin)
+    rz = np.zeros((n, 3, 3))
+    rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1], rz[:, 2, 2] = c, -s, s, c, 1.0
+    return rotation_from_z(axis) @ rz
+
+
+# -- grid ------------------------------------------------------------------------------------
+
+
+def test_distance_grid_lower_bound_never_exceeds_the_true_distance(meshes):
+    _, mold = meshes
+    grid = build_distance_grid(mold, PITCH)
+    rng = np.random.default_rng(1)
+    lo, hi = mold.bounds
+    pts = lo - 20 + rng.random((3000, 3)) * (hi - lo + 40)
+    true = point_mesh_distance(pts, np.asarray(mold.triangles))
+    inside = mold.contains(pts)
+    true[inside] = 0.0
+    bound = grid.lower_bound_np(pts)
+    assert (bound <= true + 1e-9).all()
+    in_grid = ((pts >= grid.origin_mm) & (pts <= grid.origin_mm + (np.array(grid.shape) - 1) * PITCH)).all(axis=1)
+    near = (~inside) & in_grid
+    assert near.sum() > 500
+    # Inside the grid, tight enough to be useful: off by at most a few half diagonals (the query
+    # offset, the margin, and the surface band, whose square-edged slabs reach past the surface).
+    assert (true[near] - bound[near]).max() <= 4 * grid.margin_mm
+
+
+# -- parts: zero misses ------------------------------------------------------------------------
+
+
+def test_bathtub_273_no_pose_the_reference_finds_colliding_is_missed(checker, meshes):
+    _, mold = meshes
+    P, N = bathtub_path(273, mold)
+    C, R = P + 6.0 * N, rotation_from_z(N)
+    flagged = checker.check_parts(C, R, np.zeros(len(C)))[:, 0]
+    truth = np.array([checker.reference.collides(c, r) for c, r in zip(C, R)])
+    misses, rate = _rates("bathtub 273", flagged, truth)
+    assert truth.sum() > 30
+    assert misses == 0
+    assert rate < 0.02
+
+
+def test_bathtub_5000_subset_no_misses(checker, meshes):
+    _, mold = meshes
+    P, N = bathtub_path(5000, mold)
+    P, N = P[::2], N[::2]
+    C, R = P + 6.0 * N, rotation_from_z(N)
+    flagged = checker.check_parts(C, R, np.zeros(len(C)))[:, 0]
+    truth = np.array([checker.reference.collides(c, r) for c, r in zip(C, R)])
+    misses, rate = _rates("bathtub 5000 (every 2nd)", flagged, truth)
+    assert misses == 0
+    assert rate < 0.02
+
+
+def _random_part_poses(mold, n: int, seed: int):
+    rng = np.random.default_rng(seed)
+    pts, face = mold.sample(n, return_index=True, seed=seed) if _sample_takes_seed() else mold.sample(n, return_index=True)
+    normal = mold.face_normals[face]
+    C = pts + normal * rng.uniform(2.0, 30.0, (n, 1)) + rng.normal(0, 1.0, (n, 3))
+    return C, _random_rotations(rng, n, 45.0)
+
+
+def _sample_takes_seed() -> bool:
+    import inspect
+
+    import trimesh
+
+    return "seed" in inspect.signature(trimesh.Trimesh.sample).parameters
+
+
+def test_random_poses_near_the_mold_no_misses(checker, meshes):
+    _, mold = meshes
+    C, R = _random_part_poses(mold, 2000, seed=7)
+    flagged = checker.check_parts(C, R, np.zeros(len(C)))[:, 0]
+    truth = np.array([checker.reference.collides(c, r) for c, r in zip(C, R)])
+    misses, rate = _rates("random poses near the mold", flagged, truth)
+    assert misses == 0
+    assert rate < 0.02
+
+
+@pytest.mark.heavy
+def test_20000_random_poses_near_the_mold_no_misses(checker, meshes):
+    _, mold = meshes
+    C, R = _random_part_poses(mold, 20000, seed=11)
+    flagged = checker.check_parts(C, R, np.zeros(len(C)))[:, 0]
+    truth = np.array([checker.reference.collides(c, r) for c, r in zip(C, R)])
+    misses, rate = _rates("20,000 random poses near the mold", flagged, truth)
+    assert misses == 0
+    assert rate < 0.02
+
+
+def test_a_margin_is_honoured_exactly(checker, meshes):
+    """With a margin (sweeps) a pose is flagged iff the exact distance is below it."""
+    _, mold = meshes
+    C, R = _random_part_poses(mold, 300, seed=3)
+    margin = np.full(len(C), 0.5)
+    flagged = checker.check_parts(C, R, margin)[:, 0]
+    values, _ = checker.reference.clearances(C, R)
+    truth = values < 0.5
+    ok = np.abs(values - 0.5) > 1e-6  # the depth of a hit is a lower bound; only the sign is exact
+    assert (flagged[ok] | ~truth[ok]).all()
+
+
+# -- deposit -----------------------------------------------------------------------------------
+
+
+def _wall_beads(spacing: float = 0.25) -> np.ndarray:
+    """Bead centres of a thin wall: x in [-20, 20] at y = 0, layers 1.5 mm apart up to z = 36."""
+    x = np.arange(-20.0, 20.0 + 1e-9, spacing)
+    z = np.arange(0.0, 36.0 + 1e-9, 1.5)
+    xx, zz = np.meshgrid(x, z, indexing="ij")
+    return np.stack([xx.ravel(), np.zeros(xx.size), zz.ravel()], axis=1)
+
+
+def _exact_bead_clearance(ref, C, R, beads, radius):
+    """Exact reference (n,): negative when some bead sphere meets the head above the allowance.
+
+    Independent of the checker: coal's exact BVH distance from the clipped head mesh to the bead
+    centres (a BVH of point triangles), minus the radius; a centre inside the clipped head
+    (embree ray test) is a hit. Positive values are the exact clearance.
+    """
+    import coal
+
+    head = ref._bead_head
+    head_bvh = coal.BVHModelOBBRSS()
+    head_bvh.beginModel(len(head.faces), len(head.vertices))
+    head_bvh.addVertices(np.asarray(head.vertices, dtype=np.float64))
+    head_bvh.addTriangles(np.asarray(head.faces, dtype=np.int64))
+    head_bvh.endModel()
+    points = coal.BVHModelOBBRSS()
+    points.beginModel(len(beads), len(beads))
+    points.addVertices(np.asarray(beads, dtype=np.float64))
+    points.addTriangles(np.repeat(np.arange(len(beads))[:, None], 3, axis=1))
+    points.endModel()
+    lo, hi = head.bounds
+    request = coal.DistanceRequest()
+    out = np.empty(len(C))
+    for i, (c, r) in enumerate(zip(C, R)):
+        local = (beads - c) @ r
+        box = ((local >= lo) & (local <= hi)).all(axis=1)
+        if box.any() and head.contains(local[box]).any():
+            out[i] = -radius
+            continue
+        result = coal.DistanceResult()
+        out[i] = coal.distance(head_bvh, coal.Transform3s(r, c), points, coal.Transform3s(), request, result) - radius
+    return out
+
+
+def _random_bead_poses(n: int, seed: int):
+    rng = np.random.default_rng(seed)
+    C = np.stack([rng.uniform(-30, 30, n), rng.uniform(-25, 25, n), rng.uniform(-2, 45, n)], axis=1)
+    return C, _random_rotations(rng, n, 45.0)
+
+
+@pytest.fixture(scope="module")
+def bead_checker(meshes):
+    head, _ = meshes
+    model = build_head_model(head, PITCH)
+    return Checker(head, model, [], pitch_mm=PITCH, bead_radius_mm=1.0, tip_allowance_mm=1.0, device="cpu")
+
+
+def _deposit_case(bead_checker, n: int, seed: int):
+    beads = _wall_beads(0.5)
+    store = BeadStore(1.0)
+    store.add(beads)
+    C, R = _random_bead_poses(n, seed)
+    hit, _ = bead_checker.check_deposit(C, R, np.zeros(n), np.arange(n), store, np.zeros((0, 3)),
+                                        np.zeros(0, dtype=np.int64))
+    truth = _exact_bead_clearance(bead_checker.reference, C, R, beads, 1.0) < 0
+    return hit, truth
+
+
+def test_random_poses_near_beads_no_misses(bead_checker):
+    hit, truth = _deposit_case(bead_checker, 2000, seed=5)
+    misses, rate = _rates("random poses near a bead wall", hit, truth)
+    assert truth.sum() > 100
+    assert misses == 0
+    assert rate < 0.02
+
+
+@pytest.mark.heavy
+def test_20000_random_poses_near_beads_no_misses(bead_checker):
+    hit, truth = _deposit_case(bead_checker, 20000, seed=13)
+    misses, rate = _rates("20,000 random poses near a bead wall", hit, truth)
+    assert misses == 0
+    assert rate < 0.02
+
+
+def test_beads_laid_after_a_pose_are_not_seen_by_it(bead_checker):
+    beads = _wall_beads(0.5)
+    C, R = _random_bead_poses(400, seed=9)
+    truth = _exact_bead_clearance(bead_checker.reference, C, R, beads, 1.0) < 0
+    assert truth.any()
+    store = BeadStore(1.0)
+    # All beads pending with a sequence number after every pose: nothing is seen.
+    hit, _ = bead_checker.check_deposit(C, R, np.zeros(len(C)), np.arange(len(C)), store, beads,
+                                        np.full(len(beads), 10_000))
+    assert not hit.any()
+    hit, _ = bead_checker.check_deposit(C, R, np.zeros(len(C)), np.arange(len(C)), store, beads,
+                                        np.zeros(len(beads), dtype=np.int64))
+    assert (hit | ~truth).all()
+
+
+@pytest.mark.parametrize(
+    "e_delta, codes, rule",
+    [
+        ([np.nan, 1.0], False, DepositRule.EXTRUSION),
+        ([np.nan, np.nan], True, DepositRule.CODES),
+        ([np.nan, np.nan], False, DepositRule.EVERY_FEED),
+    ],
+)
+def test_deposit_rule_is_chosen_from_the_first_window(e_delta, codes, rule):
+    assert choose_rule(np.array(e_delta), codes, 1.0) is rule
+    assert choose_rule(np.array(e_delta), codes, 0.0) is DepositRule.OFF
+
+
+def test_rapids_never_deposit_and_e_must_grow():
+    motion = np.array([0, 1, 1, 1, 2, -1], dtype=np.int8)
+    e = np.array([1.0, 1.0, -0.5, np.nan, 0.2, 1.0])
+    on = np.array([1, 1, 0, 1, 1, 1], dtype=np.int8)
+    assert depositing(DepositRule.EXTRUSION, motion, e, on).tolist() == [False, True, False, False, True, False]
+    assert depositing(DepositRule.CODES, motion, e, on).tolist() == [False, True, False, True, True, False]
+    assert depositing(DepositRule.EVERY_FEED, motion, e, on).tolist() == [False, True, True, True, True, False]
+
+
+# -- through the pipeline ----------------------------------------------------------------------
+
+
+def _program(points, vectors, profile="ijk") -> bytes:
+    return "".join(post_program(load_profile(profile), points, vectors, title="checker test")).encode()
+
+
+def _run(data: bytes, **kw):
+    options = replace(Options(head=str(HEAD), check=True, device="cpu"), **kw)
+    out = io.BytesIO()
+    report = run(io.BytesIO(data), out, options, "test.nc")
+    return out.getvalue(), report
+
+
+def _motion_lines(data: bytes) -> list[int]:
+    return [i + 1 for i, line in enumerate(data.decode().splitlines()) if line.split()[1:2] and
+            line.split()[1] in ("G0", "G1") or (line.startswith("N") and " X" in line)]
+
+
+def test_bathtub_program_end_to_end_flags_every_colliding_block(checker, meshes):
+    _, mold = meshes
+    P, N = bathtub_path(273, mold)
+    data = _program(P, N)
+    out, report = _run(data, part=(str(MOLD),), bead_radius=0.0)
+    assert out == data
+    assert report.exit_code == 1
+    flagged = {c["line"] for c in report.collisions}
+    lines = data.decode().splitlines(keepends=True)
+    feed_lines = [i + 1 for i, line in enumerate(lines) if " X" in line][1:-1]  # approach, retract
+    assert len(feed_lines) == len(P)
+    truth = np.array([checker.reference.collides(c, r) for c, r in zip(P + 6 * N, rotation_from_z(N))])
+    truth_lines = {feed_lines[i] for i in np.nonzero(truth)[0]}
+    assert truth_lines <= flagged
+    extra = flagged - truth_lines
+    print(f"\nbathtub 273 program: {len(truth_lines)} blocks collide at their end pose, "
+          f"{len(flagged)} flagged ({len(extra)} more: their sweeps from the previous point)")
+    entry = report.collisions[0]
+    assert entry["bodies"] == ["part:recreated_mold.stl"]
+    assert set(entry) == {"line", "bodies", "penetration_mm", "clearance_mm"}
+    assert report.summary["colliding_blocks_before"] == len(flagged)
+
+
+def test_fix_mode_lists_every_colliding_block_as_unresolved(meshes):
+    _, mold = meshes
+    P, N = bathtub_path(25, mold)
+    data = _program(P, N)
+    out, report = _run(data, part=(str(MOLD),), bead_radius=0.0, check=False)
+    assert out == data
+    assert report.summary["unresolved_blocks"] == report.summary["colliding_blocks_before"] > 0
+    assert [u["line"] for u in report.unresolved] == [c["line"] for c in report.collisions]
+    assert report.exit_code == 1
+    json.dumps(report.to_json())
+
+
+def _wall_program():
+    """A wall printed in 25 layers (x from -20 to 20, 2 mm steps, y = 0, 1.5 mm apart), then a
+    pass beside it at y = 20 whose body hangs over the wall, then one tilted 20° toward it."""
+    pts, vecs = [], []
+    for layer in range(25):
+        xs = np.arange(-20.0, 20.0 + 1e-9, 2.0)
+        if layer % 2:
+            xs = xs[::-1]
+        for x in xs:
+            pts.append((x, 0.0, 1.5 * layer))
+            vecs.append((0.0, 0.0, 1.0))
+    wall = len(pts)
+    for x in np.arange(-30.0, 30.0 + 1e-9, 3.0):
+        pts.append((x, 20.0, 2.0))
+        vecs.append((0.0, 0.0, 1.0))
+    tilt = np.radians(20.0)
+    for x in np.arange(30.0, -30.0 - 1e-9, -3.0):
+        pts.append((x, 34.0, 2.0))
+        vecs.append((0.0, -np.sin(tilt), np.cos(tilt)))
+    return np.array(pts), np.array(vecs), wall
+
+
+def _wall_lines():
+    """The wall program as lines, with M3 after the plunge to the first point and M5 after the wall
+    (run with --deposit-codes M3,M5), and the index of each point's line."""
+    P, N, wall = _wall_program()
+    lines = _program(P, N).decode().splitlines(keepends=True)
+    feed = [i for i, line in enumerate(lines) if " X" in line][1:-1]
+    lines.insert(feed[wall - 1] + 1, "M5\n")
+    lines.insert(feed[0] + 1, "M3\n")
+    feed = [i for i, line in enumerate(lines) if " X" in line][1:-1]
+    return P, N, wall, lines, feed
+
+
+def test_deposit_workload_collides_only_with_what_it_printed(bead_checker):
+    P, N, wall, lines, feed = _wall_lines()
+    data = "".join(lines).encode()
+    out, report = _run(data, deposit_codes=("M3", "M5"))  # no --part: nothing else to hit
+    assert out == data
+    flagged = {c["line"] for c in report.collisions}
+    assert flagged and all(c["bodies"] == ["deposit"] for c in report.collisions)
+
+    # Reference: end poses of the passes against the wall's beads (sampled 4x denser).
+    feed_lines = [i + 1 for i in feed]
+    beads = []
+    for a, b in zip(P[: wall - 1], P[1:wall]):
+        t = np.linspace(0, 1, int(np.ceil(np.linalg.norm(b - a) / (PITCH / 8))) + 1)[:, None]
+        beads.append(a + t * (b - a))
+    beads = np.concatenate(beads)
+    C, R = P + 6 * N, rotation_from_z(N)
+    clear = _exact_bead_clearance(bead_checker.reference, C[wall:], R[wall:], beads, 1.0)
+    truth = {feed_lines[wall + i] for i in np.nonzero(clear < 0)[0]}
+    assert truth, "the workload must collide"
+    assert truth <= flagged
+    # Flagged beyond the end poses: only blocks whose sweep enters the wall (next to a true one).
+    assert all(line - 1 in truth or line + 1 in truth or line in truth for line in flagged)
+    assert not any(line <= feed_lines[wall - 1] for line in flagged), "printing the wall hits nothing"
+    print(f"\nwall workload: {len(truth)} colliding end poses, {len(flagged)} flagged blocks")
+
+    _, off = _run(data, deposit_codes=("M3", "M5"), bead_radius=0.0)
+    assert off.collisions == [] and off.exit_code == 0
+
+
+def test_extrusion_words_decide_which_moves_deposit(bead_checker):
+    """Same wall, E words instead of codes: only the first layer extrudes, the passes hit nothing;
+    with every layer extruding they hit the wall as with the codes."""
+    results = []
+    for layers in (1, 25):
+        P, N, wall, lines, feed = _wall_lines()
+        e = 0.0
+        for j, i in enumerate(feed):
+            if 1 <= j < min(wall, 21 * layers):
+                e += 0.1
+            lines[i] = lines[i].rstrip("\n") + f" E{e:.3f}\n"
+        _, report = _run("".join(lines).encode())
+        assert report.summary["deposit_rule"] == "extrusion words (E grows)"
+        results.append({c["line"] for c in report.collisions})
+    _, codes = _run("".join(_wall_lines()[3]).encode(), deposit_codes=("M3", "M5"))
+    assert results[0] == set()
+    assert results[1] == {c["line"] for c in codes.collisions}
+
+
+def test_the_stage_gives_back_each_chunk_at_once(checker):
+    from ncfix.nc.modal import Interpreter
+    from ncfix.pipeline import read_chunks
+
+    P, N = bathtub_path(12)
+    data = _program(P + np.array([0, 0, 200.0]), N)
+    profile = load_profile("ijk")
+    options = Options(head=str(HEAD), check=True, window=16)
+    from ncfix.report import Report
+
+    report = Report(input="t", machine="ijk", options=options)
+    stage = CheckStage(checker, profile, options, report)
+    chunks = list(read_chunks(io.BytesIO(data), Interpreter(profile, "t", None), lines_per_chunk=10))
+    for chunk in chunks:
+        assert stage.push(chunk) == [chunk]
+    assert list(stage.flush()) == []
+
+
+def test_rotary_profile_program_is_checked_through_forward_kinematics(checker, meshes):
+    _, mold = meshes
+    P, N = bathtub_path(50, mold)
+    data = _program(P, N, profile="table-bc")
+    out, report = _run(data, part=(str(MOLD),), bead_radius=0.0, machine="table-bc")
+    assert out == data
+    profile = load_profile("table-bc")
+    from ncfix.nc.modal import Interpreter
+    from ncfix.pipeline import read_chunks
+
+    chunk = next(read_chunks(io.BytesIO(data), Interpreter(profile, "t", None), lines_per_chunk=10_000))
+    rows = np.nonzero(chunk.motion >= 1)[0]
+    p, n, r = profile.kinematics.forward(chunk.words[rows], tcp=True)
+    truth = {int(rows[i]) + 1 for i in range(len(rows)) if checker.reference.collides(p[i] + 6 * n[i], r[i])}
+    assert truth and truth <= {c["line"] for c in report.collisions}
+
+
+def test_missing_head_file_is_an_input_error():
+    from ncfix.errors import GeometryError
+
+    with pytest.raises(GeometryError, match="does not exist"):
+        _run(b"G1 X0 Y0 Z0\n", head="/nonexistent/head.stl")
+
+
+# -- devices -----------------------------------------------------------------------------------
+
+
+def test_cpu_and_cuda_make_identical_decisions(meshes):
+    torch = pytest.importorskip("torch")
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device on this machine")
+    head, mold = meshes
+    model = build_head_model(head, PITCH)
+    C, R = _random_part_poses(mold, 3000, seed=21)
+    results = []
+    for device in ("cpu", "cuda"):
+        ck = Checker(head, model, [("part:mold", mold, True)], pitch_mm=PITCH, device=device)
+        results.append(ck.check_parts(C, R, np.full(len(C), 0.2)))
+    assert (results[0] == results[1]).all()
+
+
+def test_grid_lookups_agree_between_numpy_and_torch(meshes):
+    import torch
+
+    _, mold = meshes
+    grid = build_distance_grid(mold, 1.0)
+    rng = np.random.default_rng(2)
+    pts = mold.bounds[0] - 10 + rng.random((5000, 3)) * (mold.bounds[1] - mold.bounds[0] + 20)
+    a = grid.lower_bound_np(pts)
+    b = grid.lower_bound(torch.as_tensor(pts)).numpy()
+    assert np.allclose(a, b, atol=1e-12)
