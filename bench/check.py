@@ -15,7 +15,6 @@ so that its peak memory is its own.
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import resource
 import subprocess

@@ -7,7 +7,6 @@ Prints one table; the baseline in the same process is a bare byte copy of the sa
 from __future__ import annotations
 
 import argparse
-import io
 import math
 import os
 import resource

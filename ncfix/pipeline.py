@@ -8,7 +8,6 @@ from itertools import islice
 from typing import BinaryIO, Protocol
 
 from ncfix.config import Options
-from ncfix.errors import NcfixError
 from ncfix.nc.chunk import Chunk
 from ncfix.nc.modal import Interpreter
 from ncfix.nc.writer import Writer

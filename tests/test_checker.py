@@ -17,7 +17,7 @@ from ncfix.collision.deposit import BeadStore, DepositRule, choose_rule, deposit
 from ncfix.collision.grid import build_distance_grid
 from ncfix.collision.head import build_head_model
 from ncfix.config import Options
-from ncfix.geometry.distance import point_mesh_distance, winding_numbers
+from ncfix.geometry.distance import point_mesh_distance
 from ncfix.geometry.frames import rotation_from_z
 from ncfix.geometry.mesh import load_head, load_mesh
 from ncfix.nc.post import post_program

@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-import io
 
-import numpy as np
 import pytest
 
-from ncfix.config import Options
 from ncfix.nc.emit import format_value, rewrite_line
 from ncfix.nc.modal import Interpreter
 from ncfix.nc.writer import Writer

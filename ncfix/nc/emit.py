@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import re
 
-from ncfix.nc.lexer import WordSpan, decimals_of, split_eol, word_spans
+from ncfix.nc.lexer import decimals_of, split_eol, word_spans
 from ncfix.profiles import Profile
 
 _CHECKSUM_RE = re.compile(r"\*(\d+)([ \t]*)$")
