@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-RAPID, LINEAR, ARC_CW, ARC_CCW = 0, 1, 2, 3
 
 
 class ModalState:
@@ -24,10 +23,11 @@ class Block:
     ``words`` holds, for a motion block, the absolute value of every machine word of the
     profile (``profile.kinematics.letters``: X Y Z and the orientation words) after modal
     carry-over, in mm and degrees; NaN where the program has not said (or said with an
-    expression ncfix cannot evaluate). ``new_words`` is set by the stages that change it.
+    expression ncfix cannot evaluate). The pipeline carries the same facts in chunk columns
+    (ncfix.nc.chunk); a Block is the line-by-line reader's answer for one line.
     """
 
-    __slots__ = ("lineno", "raw", "motion", "words", "state", "opaque", "e_delta", "new_words", "reason")
+    __slots__ = ("lineno", "raw", "motion", "words", "state", "opaque", "e_delta")
 
     def __init__(self, lineno: int, raw: str, state: ModalState):
         self.lineno = lineno
@@ -37,18 +37,12 @@ class Block:
         self.words: tuple[float, ...] | None = None
         self.opaque = False  # an axis word holds an expression (`X#1`, `X=R1`)
         self.e_delta: float | None = None  # extrusion of this block, None without an E word
-        self.new_words: tuple[float, ...] | None = None
-        self.reason: str | None = None
 
     tcp = property(lambda self: self.state.tcp)
     inch = property(lambda self: self.state.inch)
     incremental = property(lambda self: self.state.incremental)
     feed_mode = property(lambda self: self.state.feed_mode)
     deposit_on = property(lambda self: self.state.deposit_on)
-
-    @property
-    def changed(self) -> bool:
-        return self.new_words is not None
 
     def __repr__(self) -> str:
         return f"Block({self.lineno}, {self.raw!r}, motion={self.motion})"

@@ -71,10 +71,6 @@ def code_of(body: str) -> str:
     return COMMENT_RE.sub(lambda m: " " * len(m.group()), body)
 
 
-def comments_of(body: str) -> list[str]:
-    return COMMENT_RE.findall(body)
-
-
 def scan(code: str) -> list[tuple[str, str, str, str]]:
     """All words of a comment-free line: ``(assign name, assign value, address, value)`` tuples.
 
