@@ -267,6 +267,47 @@ def reference_labels(name: str, machine: str, parts: tuple[str, ...], deposit_co
                          deposit_codes=deposit_codes, **kwargs)
 
 
+def unfixable_blocks(name: str, machine: str, parts: tuple[str, ...], deposit_codes=None,
+                     max_tilt_deg: float = 30.0) -> tuple[int, list[int]]:
+    """(colliding blocks, lines of those no tilt about the tip within max_tilt_deg frees).
+
+    Exact reference against the parts and the beads laid before each block (as reference_labels).
+    """
+    import trimesh
+
+    from ncfix.geometry.frames import rotation_from_z
+    from ncfix.nc.modal import Interpreter
+    from ncfix.profiles import load_profile
+    from ncfix.reference import ExactReference, bead_centres
+
+    head = trimesh.load(HERE / "deposition_head.stl")
+    ref = ExactReference(head, {part: trimesh.load(HERE / part) for part in parts})
+    profile = load_profile(machine)
+    with open(HERE / name, "rb") as handle:
+        chunk = Interpreter(profile, name, deposit_codes).feed_chunk(handle.readlines(), 1)
+    moving = np.flatnonzero(chunk.motion >= 0)
+    p, n, _ = profile.kinematics.forward(chunk.words[moving])
+    beads = np.zeros((0, 3))
+    previous = None
+    colliding, unfixable = 0, []
+    for row, i in enumerate(moving):
+        if chunk.motion[i] >= 1 and chunk.deposit_on[i] == 1 and previous is not None:
+            beads = np.vstack([beads, bead_centres(previous, p[row], 0.25)])
+        previous = p[row]
+        tip = p[row] + STANDOFF_MM * n[row]
+
+        def free(vector: np.ndarray) -> bool:
+            rot = rotation_from_z(vector)
+            return not ref.collides(tip, rot) and not (len(beads) and ref.bead_collides(tip, rot, beads, 1.0))
+
+        if free(n[row]):
+            continue
+        colliding += 1
+        if not any(free(v) for v in _cone(n[row], max_tilt_deg)):
+            unfixable.append(int(i) + 1)
+    return colliding, unfixable
+
+
 def label_counts(labels: list[tuple[int, list[str]]]) -> tuple[int, int, int]:
     """(colliding blocks, blocks hitting a part, blocks hitting only deposited material)."""
     parts = sum(any(b.startswith("part:") for b in bodies) for _, bodies in labels)

@@ -70,3 +70,12 @@ def test_deposit_sample_collides_only_with_deposit():
     counts, _ = readme_labels()
     total, parts, deposit_only = counts["deposit_wall.nc"]
     assert total > 0 and parts == 0 and deposit_only == total
+
+
+def test_every_colliding_block_of_bathtub_273_is_fixable_within_30_degrees():
+    """Tilting about the tip within Θ = 30° frees every colliding block, mold and beads alike."""
+    module = make_samples()
+    counts, _ = readme_labels()
+    colliding, unfixable = module.unfixable_blocks("bathtub_273.nc", "ijk", ("recreated_mold.stl",), ("M3", "M5"))
+    assert colliding == counts["bathtub_273.nc"][0]
+    assert unfixable == []

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 
-
 class ModalState:
     """The modal settings a block runs under; shared by consecutive blocks until one changes."""
 
