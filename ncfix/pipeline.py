@@ -48,17 +48,18 @@ def build_stages(options: Options, profile: Profile, report: Report) -> list[Sta
 
     head = load_head(options.head, options.head_tip, options.head_axis)
     report.warnings.extend(head.warnings)
-    parts = []
+    parts, loaded_parts = [], []
     for path in options.part:
         loaded = load_mesh(path, "part")
         report.warnings.extend(loaded.warnings)
         parts.append((f"part:{Path(path).name}", loaded.mesh, loaded.closed))
+        loaded_parts.append(loaded)
     model = build_head_model(head.mesh, options.pitch)
     report.details.append(model.summary())
     checker = Checker(head.mesh, model, parts, pitch_mm=options.pitch, clearance_mm=options.clearance,
                       bead_radius_mm=options.bead_radius, tip_allowance_mm=options.tip_allowance,
                       device=options.device)
-    return [CheckStage(checker, profile, options, report)]
+    return [CheckStage(checker, profile, options, report, placed_parts=loaded_parts)]
 
 
 def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>") -> Report:

@@ -55,3 +55,19 @@ def test_a_head_tip_that_is_not_the_lowest_point_is_refused(tmp_path):
                  "--part", SAMPLES / "recreated_mold.stl", cwd=tmp_path)
     assert done.returncode == 2
     assert "the head reaches 30 mm below the tip (0, 0, 30) along the axis (0, 0, 1)" in done.stderr.decode()
+
+
+def test_a_part_far_from_the_toolpath_is_refused(tmp_path):
+    import trimesh
+
+    far = trimesh.load(SAMPLES / "recreated_mold.stl")
+    far.apply_translation((0.0, 0.0, 1000.0))  # e.g. exported in another frame
+    far_path = tmp_path / "far_mold.stl"
+    far.export(far_path)
+    out = tmp_path / "out.nc"
+    done = ncfix(PROGRAM, "--check", "-o", out, "--head", SAMPLES / "deposition_head.stl", "--part", far_path,
+                 cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.decode().startswith(f"ncfix: error: {far_path}: the part is ")
+    assert "mm away from the toolpath" in done.stderr.decode()
+    assert not out.exists()

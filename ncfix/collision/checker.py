@@ -384,9 +384,12 @@ class CheckStage:
     samples at a time, the grids and the beads laid so far.
     """
 
-    def __init__(self, checker: Checker, profile, options, report):
+    def __init__(self, checker: Checker, profile, options, report, placed_parts=()):
         from ncfix.collision.deposit import BeadStore
 
+        # Parts whose placement is checked against the toolpath of the first chunk that moves
+        # (wrong frame or units): a streaming filter does not know the whole program's box.
+        self.placed_parts = list(placed_parts)
         self.checker = checker
         self.kin = profile.kinematics
         self.tcp_mode = profile.tcp
@@ -413,6 +416,8 @@ class CheckStage:
             self.rule = choose_rule(chunk.e_delta, self.options.deposit_codes is not None,
                                     self.checker.bead_radius_mm)
         rows = np.nonzero(chunk.motion >= 0)[0]
+        if self.placed_parts and len(rows):
+            self._check_placement(chunk, rows)
         dep = depositing(self.rule, chunk.motion, chunk.e_delta, chunk.deposit_on)
         for a in range(0, len(rows), self.window):
             self._check_rows(chunk, rows[a:a + self.window], dep)
@@ -429,6 +434,17 @@ class CheckStage:
         self.report.summary["checked_samples"] = self.samples
         self.report.summary["deposit_rule"] = self.rule.value if self.rule else None
         return []
+
+    def _check_placement(self, chunk, rows: np.ndarray) -> None:
+        from ncfix.geometry.mesh import check_part_overlaps
+
+        P, _, _ = self._forward(self._normalise(chunk.words[rows]), self._tcp(chunk, rows))
+        P = P[np.isfinite(P).all(axis=1)]
+        if len(P) == 0:
+            return
+        for part in self.placed_parts:
+            self.report.warnings.extend(check_part_overlaps(part, P.min(axis=0), P.max(axis=0)))
+        self.placed_parts = []
 
     # -- the work --------------------------------------------------------------------------------
     def _tcp(self, chunk, rows) -> np.ndarray:
