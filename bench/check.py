@@ -52,7 +52,8 @@ def one(kind: str, size: int) -> dict:
     t0 = time.perf_counter()
     import torch  # noqa: F401  (import time is not the checker's)
 
-    from ncfix.collision.checker import Checker, CheckStage
+    from ncfix.collision.checker import Checker
+    from ncfix.collision.stage import CheckStage
     from ncfix.collision.head import build_head_model
     from ncfix.config import Options
     from ncfix.geometry.mesh import load_head, load_mesh

@@ -42,7 +42,8 @@ def build_stages(options: Options, profile: Profile, report: Report) -> list[Sta
         return []
     from pathlib import Path
 
-    from ncfix.collision.checker import Checker, CheckStage
+    from ncfix.collision.checker import Checker
+    from ncfix.collision.stage import CheckStage
     from ncfix.collision.head import build_head_model
     from ncfix.geometry.mesh import load_head, load_mesh
 

@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ncfix.collision.checker import Checker, CheckStage
+from ncfix.collision.checker import Checker
+from ncfix.collision.stage import CheckStage
 from ncfix.collision.deposit import BeadStore, DepositRule, choose_rule, depositing
 from ncfix.collision.grid import build_distance_grid
 from ncfix.collision.head import build_head_model

@@ -15,12 +15,8 @@ plane are dropped exactly; the rest are tested against a distance grid of the he
 allowance (head frame); beads the grid cannot clear go to the exact signed distance to the
 clipped head (the reference's own function). Same one-sided logic: the grid only clears.
 
-Sweeps: between two motion points the words are interpolated as the controller does (linear in
-axis angles, great circle for tool vectors via normalised linear interpolation of unit vectors)
-and the pose is sampled so that no point of the head moves more than the pitch between samples
-(|ΔC| + ρ·θ, ρ = the head's largest distance from its tip). Sample k is checked with an extra
-margin d_k = |ΔC| + ρ·θ to sample k−1: every pose in between lies within d_k of sample k, so
-the sampled checks cover the continuous sweep. The sweep belongs to the block that ends it.
+Both take a per-pose margin: the sweeps between motion blocks (``ncfix.collision.path``) check
+sampled poses with the distance the head may move between samples.
 """
 
 from __future__ import annotations
@@ -248,6 +244,18 @@ class Checker:
                     out[j, k] = self._exact_part(k, C[j], R[j], float(margin[j]))
         return out
 
+    def free_poses(self, C: np.ndarray, R: np.ndarray, seq: np.ndarray, store: BeadStore,
+                   pending: np.ndarray, pending_seq: np.ndarray) -> np.ndarray:
+        """(n,) bool: poses (no sweep) free of every part and of the beads they see: for testing
+        candidate orientations in batch. ``pending`` beads are seen by poses with seq >= theirs."""
+        zero = np.zeros(len(C))
+        free = ~self.check_parts(C, R, zero).any(axis=1)
+        if self.bead_radius_mm > 0 and free.any() and (store.count or len(pending)):
+            idx = np.nonzero(free)[0]
+            hit, _ = self.check_deposit(C[idx], R[idx], zero[idx], seq[idx], store, pending, pending_seq)
+            free[idx[hit]] = False
+        return free
+
     # -- deposit -----------------------------------------------------------------------------
     def _deposit_pairs(self, C, R, extra, near):
         """(pose, sub-group) pairs whose sphere may come within its radius + extra of a bead (numpy).
@@ -375,210 +383,3 @@ def rotation_angle(ra: np.ndarray, rb: np.ndarray) -> np.ndarray:
     """Angle (rad) of the rotation between (n, 3, 3) pairs; robust near 0 (from the Frobenius norm)."""
     fro = np.linalg.norm((ra - rb).reshape(len(ra), -1), axis=1)
     return 2.0 * np.arcsin(np.clip(fro / (2.0 * np.sqrt(2.0)), 0.0, 1.0))
-
-
-class CheckStage:
-    """Pipeline stage: checks every motion block (end pose and sweep) and fills the report.
-
-    Chunks go back at once and unchanged; memory holds one chunk, at most ``window`` blocks'
-    samples at a time, the grids and the beads laid so far.
-    """
-
-    def __init__(self, checker: Checker, profile, options, report, placed_parts=()):
-        from ncfix.collision.deposit import BeadStore
-
-        # Parts whose placement is checked against the toolpath of the first chunk that moves
-        # (wrong frame or units): a streaming filter does not know the whole program's box.
-        self.placed_parts = list(placed_parts)
-        self.checker = checker
-        self.kin = profile.kinematics
-        self.tcp_mode = profile.tcp
-        self.is_vector = profile.is_vector
-        self.options = options
-        self.report = report
-        self.standoff_mm = float(options.standoff)
-        self.pitch_mm = float(options.pitch)
-        self.window = int(options.window)
-        self.rule = None
-        self.prev_words: np.ndarray | None = None
-        self.prev_tcp = False
-        self.seq = 0
-        self.store = BeadStore(checker.bead_radius_mm)
-        self.unchecked = 0
-        self.arcs = 0
-        self.samples = 0
-
-    # -- stage protocol ------------------------------------------------------------------------
-    def push(self, chunk):
-        from ncfix.collision.deposit import choose_rule, depositing
-
-        if self.rule is None:
-            self.rule = choose_rule(chunk.e_delta, self.options.deposit_codes is not None,
-                                    self.checker.bead_radius_mm)
-        rows = np.nonzero(chunk.motion >= 0)[0]
-        if self.placed_parts and len(rows):
-            self._check_placement(chunk, rows)
-        dep = depositing(self.rule, chunk.motion, chunk.e_delta, chunk.deposit_on)
-        for a in range(0, len(rows), self.window):
-            self._check_rows(chunk, rows[a:a + self.window], dep)
-        return [chunk]
-
-    def flush(self):
-        if self.unchecked:
-            self.report.warnings.append(
-                f"{self.unchecked} motion blocks were not checked: an axis was unknown there "
-                "(after G28/G53 or an expression) or TCP switched on the block")
-        if self.arcs:
-            self.report.warnings.append(
-                f"{self.arcs} G2/G3 arc blocks were checked along their chord, not along the arc")
-        self.report.summary["checked_samples"] = self.samples
-        self.report.summary["deposit_rule"] = self.rule.value if self.rule else None
-        return []
-
-    def _check_placement(self, chunk, rows: np.ndarray) -> None:
-        from ncfix.geometry.mesh import check_part_overlaps
-
-        P, _, _ = self._forward(self._normalise(chunk.words[rows]), self._tcp(chunk, rows))
-        P = P[np.isfinite(P).all(axis=1)]
-        if len(P) == 0:
-            return
-        for part in self.placed_parts:
-            self.report.warnings.extend(check_part_overlaps(part, P.min(axis=0), P.max(axis=0)))
-        self.placed_parts = []
-
-    # -- the work --------------------------------------------------------------------------------
-    def _tcp(self, chunk, rows) -> np.ndarray:
-        if self.tcp_mode == "never":
-            return np.zeros(len(rows), dtype=bool)
-        if self.tcp_mode == "always":
-            return np.ones(len(rows), dtype=bool)
-        return chunk.tcp[rows].astype(bool)
-
-    def _normalise(self, words: np.ndarray) -> np.ndarray:
-        if self.is_vector:
-            v = words[:, 3:6]
-            norm = np.linalg.norm(v, axis=1, keepdims=True)
-            words = words.copy()
-            words[:, 3:6] = np.divide(v, norm, out=np.full_like(v, np.nan), where=norm > 0)
-        return words
-
-    def _forward(self, words: np.ndarray, tcp: np.ndarray):
-        n = len(words)
-        P, N, R = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 3))
-        for flag in (False, True):
-            sel = tcp == flag
-            if sel.any():
-                P[sel], N[sel], R[sel] = self.kin.forward(words[sel], tcp=bool(flag))
-        return P, N, R
-
-    def _check_rows(self, chunk, rows: np.ndarray, dep: np.ndarray) -> None:
-        if len(rows) == 0:
-            return
-        ck = self.checker
-        tcp = self._tcp(chunk, rows)
-        w_end = self._normalise(chunk.words[rows])
-        w_start = np.empty_like(w_end)
-        w_start[1:] = w_end[:-1]
-        w_start[0] = self.prev_words if self.prev_words is not None else np.nan
-        tcp_start = np.empty_like(tcp)
-        tcp_start[1:] = tcp[:-1]
-        tcp_start[0] = self.prev_tcp
-        self.prev_words, self.prev_tcp = w_end[-1].copy(), bool(tcp[-1])
-        self.arcs += int((chunk.motion[rows] >= 2).sum())
-
-        known_end = np.isfinite(w_end).all(axis=1)
-        known_start = np.isfinite(w_start).all(axis=1) & (tcp_start == tcp) & known_end
-        self.unchecked += int((~known_end).sum())
-        rows, tcp, w_end, w_start, known_start = (x[known_end] for x in (rows, tcp, w_end, w_start, known_start))
-        if len(rows) == 0:
-            return
-        h = self.standoff_mm
-        Pe, Ne, Re = self._forward(w_end, tcp)
-        Ce = Pe + h * Ne
-        ws = np.where(known_start[:, None], w_start, w_end)
-        Ps, Ns, Rs = self._forward(ws, tcp)
-        Cs = Ps + h * Ns
-        d_est = np.linalg.norm(Ce - Cs, axis=1) + ck.rho_mm * rotation_angle(Rs, Re)
-        m = np.where(known_start, np.maximum(np.ceil(d_est / self.pitch_mm - 1e-9), 1), 1).astype(np.int64)
-        total = int(m.sum())
-        first = np.cumsum(m) - m  # index of each row's first sample
-        row_of = np.repeat(np.arange(len(rows)), m)
-        k = np.arange(total) - first[row_of] + 1
-        t = k / m[row_of]
-        words = ws[row_of] + t[:, None] * (w_end[row_of] - ws[row_of])
-        P, N, R = self._forward(self._normalise(words), tcp[row_of])
-        C = P + h * N
-        # Margin: how far any head point may be between this sample and the previous one.
-        prev_C = np.where((k == 1)[:, None], Cs[row_of], np.roll(C, 1, axis=0))
-        prev_R = np.where((k == 1)[:, None, None], Rs[row_of], np.roll(R, 1, axis=0))
-        step = np.linalg.norm(C - prev_C, axis=1)
-        turn = rotation_angle(prev_R, R)
-        first_only = (k == 1) & ~known_start[row_of]
-        step[first_only], turn[first_only] = 0.0, 0.0
-        margin = step + ck.rho_mm * turn
-        seq = self.seq + np.arange(total)
-
-        # Beads of this window: depositing moves, from start to end point, <= pitch/2 apart.
-        pend = np.zeros((0, 3))
-        pend_seq = np.zeros(0, dtype=np.int64)
-        depo = dep[rows]
-        if self.rule is not None and self.rule.name != "OFF" and depo.any():
-            from ncfix.collision.deposit import bead_samples
-
-            di = np.nonzero(depo)[0]
-            counts, tb = bead_samples(Ps[di], Pe[di], 0.5 * self.pitch_mm)
-            brow = np.repeat(di, counts)
-            bw = ws[brow] + tb[:, None] * (w_end[brow] - ws[brow])
-            pend, _, _ = self._forward(self._normalise(bw), tcp[brow])
-            # Seen from the first sample of the move at or after the bead's parameter.
-            kb = np.maximum(np.ceil(tb * m[brow] - 1e-9), 1).astype(np.int64)
-            pend_seq = self.seq + first[brow] + kb - 1
-        self.seq += total
-        self.samples += total
-
-        part_hit = ck.check_parts(C, R, margin)
-        dep_hit = np.zeros(total, dtype=bool)
-        dep_clear = np.full(total, np.inf)
-        if self.store.count or len(pend):
-            # Poses in small batches; before each, the beads every pose of it sees go into the
-            # store, so only the batch's own beads need the sequence filter (bounded work).
-            done = 0
-            for a in range(0, total, DEPOSIT_BATCH):
-                b = min(total, a + DEPOSIT_BATCH)
-                lo = int(np.searchsorted(pend_seq, seq[a], side="left"))
-                hi = int(np.searchsorted(pend_seq, seq[b - 1], side="right"))
-                if lo > done:
-                    self.store.add(pend[done:lo])
-                    done = lo
-                dep_hit[a:b], dep_clear[a:b] = ck.check_deposit(
-                    C[a:b], R[a:b], margin[a:b], seq[a:b], self.store, pend[lo:hi], pend_seq[lo:hi],
-                    step[a:b], turn[a:b])
-            self.store.add(pend[done:])
-        ck.stats.poses += total
-
-        any_hit = part_hit.any(axis=1) | dep_hit
-        if not any_hit.any():
-            return
-        for r in np.unique(row_of[any_hit]):
-            sel = np.nonzero(row_of == r)[0]
-            hits = sel[any_hit[sel]]
-            bodies = [p.name for j, p in enumerate(ck.parts) if part_hit[hits, j].any()]
-            clearance = np.inf
-            if bodies:
-                s = hits[-1]  # the end pose when it collides, else the last colliding sample
-                per_part = ck.reference.part_clearances(C[s], R[s])
-                clearance = min(per_part[b] for b in bodies)
-            if dep_hit[hits].any():
-                bodies.append("deposit")
-                clearance = min(clearance, float(dep_clear[hits].min()))
-            self._record(int(chunk.first_lineno + rows[r]), bodies, float(clearance))
-
-    def _record(self, line: int, bodies: list[str], clearance_mm: float) -> None:
-        penetration = round(max(0.0, -clearance_mm), 4)
-        rep = self.report
-        rep.summary["colliding_blocks_before"] += 1
-        rep.collisions.append({"line": line, "bodies": bodies, "penetration_mm": penetration,
-                               "clearance_mm": round(clearance_mm, 4)})
-        if not self.options.check:  # no corrector yet: the block is left as programmed
-            rep.unresolved.append({"line": line, "bodies": bodies, "penetration_mm": penetration})
-            rep.summary["unresolved_blocks"] += 1

@@ -1,0 +1,144 @@
+"""The --check stage: every motion block (end pose and sweep) checked, collisions reported.
+
+Chunks go back at once and unchanged; memory holds one chunk, at most ``window`` blocks'
+samples at a time, the grids and the beads laid so far.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ncfix.collision.checker import Checker
+from ncfix.collision.deposit import BeadStore, choose_rule, depositing
+from ncfix.collision.path import Moves, MoveHits, PathChecker
+
+
+class MotionRows:
+    """Turns chunks into runs of moves: carries the previous motion block's words across chunks."""
+
+    def __init__(self, path: PathChecker, profile, options):
+        self.path = path
+        self.tcp_mode = profile.tcp
+        self.options = options
+        self.rule = None
+        self.prev_words: np.ndarray | None = None
+        self.prev_tcp = False
+        self.unchecked = 0
+        self.arcs = 0
+
+    def tcp(self, chunk, rows) -> np.ndarray:
+        if self.tcp_mode == "never":
+            return np.zeros(len(rows), dtype=bool)
+        if self.tcp_mode == "always":
+            return np.ones(len(rows), dtype=bool)
+        return chunk.tcp[rows].astype(bool)
+
+    def deposit(self, chunk) -> np.ndarray:
+        if self.rule is None:
+            self.rule = choose_rule(chunk.e_delta, self.options.deposit_codes is not None,
+                                    self.path.checker.bead_radius_mm)
+        return depositing(self.rule, chunk.motion, chunk.e_delta, chunk.deposit_on)
+
+    def moves(self, chunk, rows: np.ndarray, dep: np.ndarray) -> tuple[np.ndarray, Moves]:
+        """The checkable rows (every axis known) of ``rows`` (not empty) and their moves; counts the others."""
+        tcp = self.tcp(chunk, rows)
+        w_end = self.path.normalise(chunk.words[rows])
+        w_start = np.empty_like(w_end)
+        w_start[1:] = w_end[:-1]
+        w_start[0] = self.prev_words if self.prev_words is not None else np.nan
+        tcp_start = np.empty_like(tcp)
+        tcp_start[1:] = tcp[:-1]
+        tcp_start[0] = self.prev_tcp
+        self.prev_words, self.prev_tcp = w_end[-1].copy(), bool(tcp[-1])
+        self.arcs += int((chunk.motion[rows] >= 2).sum())
+        known_end = np.isfinite(w_end).all(axis=1)
+        known_start = np.isfinite(w_start).all(axis=1) & (tcp_start == tcp) & known_end
+        self.unchecked += int((~known_end).sum())
+        keep = known_end
+        moves = Moves(w_start[keep], w_end[keep], tcp[keep], known_start[keep], dep[rows][keep])
+        return rows[keep], moves
+
+    def warnings(self) -> list[str]:
+        out = []
+        if self.unchecked:
+            out.append(f"{self.unchecked} motion blocks were not checked: an axis was unknown there "
+                       "(after G28/G53 or an expression) or TCP switched on the block")
+        if self.arcs:
+            out.append(f"{self.arcs} G2/G3 arc blocks were checked along their chord, not along the arc")
+        return out
+
+
+def check_placement(path: PathChecker, motion: MotionRows, placed_parts: list, chunk, rows, report) -> list:
+    """Check each part's placement against the toolpath box of the first chunk that moves (wrong
+    frame or units): a streaming filter does not know the whole program's box. Returns the parts
+    still to check (none once a chunk moved)."""
+    from ncfix.geometry.mesh import check_part_overlaps
+
+    if not placed_parts or not len(rows):
+        return placed_parts
+    P, _, _ = path.forward(path.normalise(chunk.words[rows]), motion.tcp(chunk, rows))
+    P = P[np.isfinite(P).all(axis=1)]
+    if len(P) == 0:
+        return placed_parts
+    for part in placed_parts:
+        report.warnings.extend(check_part_overlaps(part, P.min(axis=0), P.max(axis=0)))
+    return []
+
+
+def record_collisions(report, checker: Checker, lines: np.ndarray, hits: MoveHits, *, resolved: bool) -> None:
+    """One report entry per colliding move: bodies hit, exact clearance of its deciding sample."""
+    for r in np.nonzero(hits.any)[0]:
+        bodies = [p.name for j, p in enumerate(checker.parts) if hits.part_hit[r, j]]
+        clearance = np.inf
+        s = hits.sample[r]
+        if bodies:
+            per_part = checker.reference.part_clearances(hits.C[s], hits.R[s])
+            clearance = min(per_part[b] for b in bodies)
+        if hits.deposit_hit[r]:
+            bodies.append("deposit")
+            clearance = min(clearance, float(hits.deposit_clearance[r]))
+        penetration = round(max(0.0, -clearance), 4)
+        report.summary["colliding_blocks_before"] += 1
+        report.collisions.append({"line": int(lines[r]), "bodies": bodies, "penetration_mm": penetration,
+                                  "clearance_mm": round(float(clearance), 4)})
+        if not resolved:
+            report.unresolved.append({"line": int(lines[r]), "bodies": bodies, "penetration_mm": penetration,
+                                      "reason": "collides as programmed"})
+            report.summary["unresolved_blocks"] += 1
+
+
+class CheckStage:
+    """Pipeline stage: checks every motion block (end pose and sweep) and fills the report."""
+
+    def __init__(self, checker: Checker, profile, options, report, placed_parts=()):
+        self.placed_parts = list(placed_parts)
+        self.checker = checker
+        self.path = PathChecker(checker, profile, options.standoff, options.pitch)
+        self.motion = MotionRows(self.path, profile, options)
+        self.options = options
+        self.report = report
+        self.window = int(options.window)
+        self.seq = 0
+        self.store = BeadStore(checker.bead_radius_mm)
+        self.samples = 0
+
+    def push(self, chunk):
+        rows = np.nonzero(chunk.motion >= 0)[0]
+        self.placed_parts = check_placement(self.path, self.motion, self.placed_parts, chunk, rows, self.report)
+        dep = self.motion.deposit(chunk)
+        for a in range(0, len(rows), self.window):
+            rows_w, moves = self.motion.moves(chunk, rows[a:a + self.window], dep)
+            if len(moves) == 0:
+                continue
+            hits, self.seq = self.path.check(moves, self.store, self.seq)
+            self.samples += hits.samples
+            record_collisions(self.report, self.checker, chunk.first_lineno + rows_w, hits,
+                              resolved=bool(self.options.check))
+        return [chunk]
+
+    def flush(self):
+        self.report.warnings.extend(self.motion.warnings())
+        self.report.summary["checked_samples"] = self.samples
+        rule = self.motion.rule
+        self.report.summary["deposit_rule"] = rule.value if rule else None
+        return []
