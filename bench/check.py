@@ -4,9 +4,11 @@
     /work/venv/bin/python bench/check.py --sizes 10000 --runs 3
 
 Bathtub workloads (samples/, ijk profile, mold part, deposit model on): time per stage (load,
-head model, grids, check, report), peak RSS, and the exact reference (coal, ExactReference.collides)
-on the same poses the checker tested (end poses and sweep samples; timed on up to 3,000 of them
-and scaled), as a ratio. Clean workloads: generated layered prints (100 x 100 mm, 2 mm line
+head model, grids, check, report), peak RSS, and the exact reference on the same poses in the
+same run: ``exact`` is coal (ExactReference.collides, parts only) on every pose the checker
+covers (end poses and sweep samples at the pitch; timed on up to 3,000 of them and scaled), its
+ratio to ``check`` is the speed-up; ``labels`` is the reference's own labelling of the program
+(reference.label_program: end poses only, mold and beads; 273 points only, it is slow). Clean workloads: generated layered prints (100 x 100 mm, 2 mm line
 spacing, 1 mm blocks, 1.5 mm layers, vertical head) on a slab, deposit model on (M3 after the plunge to the first point, --deposit-codes M3,M5),
 nothing collides; blocks/s of the whole check stage and peak RSS. Each workload runs in its own process
 so that its peak memory is its own.
@@ -88,16 +90,21 @@ def one(kind: str, size: int) -> dict:
         out["load"] = time.perf_counter() - t
         program = tmp / "clean.nc"
         with open(program, "w") as f:
+            tail: list[str] = []
             for a in range(0, size, 200_000):
                 P, N = _clean_points(min(size, a + 200_000))
                 P, N = P[a:], N[a:]
                 lines = list(post_program(profile, P, N, title="bench"))
                 if a:  # continue the same program: only the body
                     lines = [line for line in lines if line.startswith("N") and " X" in line][1:-1]
-                else:  # deposit from the first point on (M3), not on the plunge to it
+                else:  # deposit from the first point on (M3), not on the plunge to it; the retract
+                    # and the end go after the last chunk (not across the print, depositing)
                     first = next(i for i, line in enumerate(lines) if " G1 " in line)
                     lines.insert(first + 1, "M3\n")
+                    last = max(i for i, line in enumerate(lines) if " X" in line)
+                    lines, tail = lines[:last], lines[last:]
                 f.writelines(lines)
+            f.writelines(tail)
         parts = [("part:slab", part, True)]
     options = Options(head="head.stl", check=True, device="cpu",
                       deposit_codes=("M3", "M5") if kind == "clean" else None)
@@ -110,16 +117,17 @@ def one(kind: str, size: int) -> dict:
     out["grids"] = time.perf_counter() - t
 
     recorded: list[tuple[np.ndarray, np.ndarray]] = []
-    if kind == "bathtub":
-        original = checker.check_parts
-
-        def recording(C, R, margin):
-            recorded.append((C.copy(), R.copy()))
-            return original(C, R, margin)
-
-        checker.check_parts = recording  # type: ignore[method-assign]
     report = Report(input=str(program), machine=profile.name, options=options)
     stage = CheckStage(checker, profile, options, report)
+    if kind == "bathtub":
+        original = stage.path.check
+
+        def recording(moves, store, seq0, **kw):
+            hits, seq = original(moves, store, seq0, **kw)
+            recorded.append((hits.C.copy(), hits.R.copy()))
+            return hits, seq
+
+        stage.path.check = recording  # type: ignore[method-assign]
     t = time.perf_counter()
     blocks = 0
     with open(program, "rb") as src:
@@ -136,6 +144,7 @@ def one(kind: str, size: int) -> dict:
     out["poses"] = checker.stats.poses
     out["colliding"] = report.summary["colliding_blocks_before"]
     out["beads"] = stage.store.count
+    out["store_mb"] = stage.store.nbytes / 2**20
     out["peak_mb"] = _rss_mb()
     if recorded:
         C = np.concatenate([c for c, _ in recorded])
@@ -145,6 +154,12 @@ def one(kind: str, size: int) -> dict:
         for i in pick:
             checker.reference.collides(C[i], R[i])
         out["exact"] = (time.perf_counter() - t) * len(C) / len(pick)
+        if size <= 1000:
+            from ncfix.reference import label_program
+
+            t = time.perf_counter()
+            label_program(str(program), "ijk", head, {"recreated_mold.stl": part})
+            out["labels"] = time.perf_counter() - t
     return out
 
 
@@ -162,11 +177,12 @@ def main(argv: list[str] | None = None) -> int:
     for size in (int(s) for s in args.sizes.split(",")):
         kind = "bathtub" if size in (273, 5000) else "clean"
         runs = []
-        for _ in range(args.runs):
+        for _ in range(args.runs if size < 1_000_000 else 1):  # 1M: one run (minutes)
             res = subprocess.run([sys.executable, __file__, "--one", kind, str(size)], capture_output=True,
                                  text=True, check=True)
             runs.append(json.loads(res.stdout.strip().splitlines()[-1]))
         med = {k: float(np.median([r[k] for r in runs])) for k in runs[0]}
+        med["runs"] = len(runs)
         rows.append((kind, size, med))
         _print([rows[-1]])
     print()
@@ -175,16 +191,18 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _print(rows) -> None:
-    head = (f"{'workload':<16}{'blocks':>9}{'poses':>10}{'hits':>6}{'load':>7}{'model':>7}{'grids':>7}"
-            f"{'check':>8}{'report':>7}{'blocks/s':>10}{'poses/s':>9}{'exact':>8}{'ratio':>7}{'peak MB':>9}")
+    head = (f"{'workload':<16}{'runs':>5}{'blocks':>9}{'poses':>10}{'hits':>6}{'load':>7}{'model':>7}{'grids':>7}"
+            f"{'check':>8}{'report':>7}{'blocks/s':>10}{'exact':>8}{'ratio':>7}{'labels':>8}{'store MB':>9}"
+            f"{'peak MB':>9}")
     print(head)
     for kind, size, m in rows:
         exact = m.get("exact")
         ratio = f"{exact / m['check']:.1f}x" if exact else "-"
-        print(f"{kind + ' ' + str(size):<16}{int(m['blocks']):>9}{int(m['poses']):>10}{int(m['colliding']):>6}"
-              f"{m['load']:>7.2f}{m['head model']:>7.2f}{m['grids']:>7.2f}{m['check']:>8.2f}{m['report']:>7.3f}"
-              f"{m['blocks'] / m['check']:>10.0f}{m['poses'] / m['check']:>9.0f}"
-              f"{(f'{exact:.2f}' if exact else '-'):>8}{ratio:>7}{m['peak_mb']:>9.0f}")
+        labels = f"{m['labels']:.2f}" if m.get("labels") else "-"
+        print(f"{kind + ' ' + str(size):<16}{int(m['runs']):>5}{int(m['blocks']):>9}{int(m['poses']):>10}"
+              f"{int(m['colliding']):>6}{m['load']:>7.2f}{m['head model']:>7.2f}{m['grids']:>7.2f}{m['check']:>8.2f}"
+              f"{m['report']:>7.3f}{m['blocks'] / m['check']:>10.0f}{(f'{exact:.2f}' if exact else '-'):>8}"
+              f"{ratio:>7}{labels:>8}{m['store_mb']:>9.1f}{m['peak_mb']:>9.0f}")
 
 
 if __name__ == "__main__":

@@ -3,5 +3,6 @@
 __version__ = "0.1.0"
 
 from ncfix.errors import NcfixError
+from ncfix.api import process
 
-__all__ = ["NcfixError", "__version__"]
+__all__ = ["NcfixError", "__version__", "process"]

@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import io
 import os
+import stat
 import sys
 import traceback
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import BinaryIO
 
 from ncfix import __version__
-from ncfix.config import DEVICES, PIVOTS, STRATEGIES, Options, build_options, load_config
+from ncfix.config import DEVICES, OPTION_NAMES, PIVOTS, STRATEGIES, Options, build_options, load_config
 from ncfix.errors import NcfixError
 
 EXIT_OK, EXIT_COLLISIONS, EXIT_USAGE = 0, 1, 2
@@ -41,6 +44,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--pitch", metavar="MM", help="voxel size (default 0.5)")
     p.add_argument("--clearance", metavar="MM", help="extra safety margin around every body (default 0)")
     p.add_argument("--strategy", choices=STRATEGIES, help="correction strategy (default graph)")
+    p.add_argument("--resolution", metavar="DEG", help="spacing of the orientations the corrector tries (default 1)")
     p.add_argument("--bead-radius", metavar="MM", help="radius of deposited material; 0 turns the deposit model off (default 1)")
     p.add_argument("--tip-allowance", metavar="MM", help="bottom of the head not checked against deposit (default 1)")
     p.add_argument("--deposit-codes", metavar="ON,OFF", help="M-codes that switch deposition on and off, e.g. M3,M5")
@@ -111,53 +115,63 @@ def _options(args: argparse.Namespace) -> Options:
     explicit = args.config is not None
     path = _config_path(args)
     config = load_config(path, explicit)
-    cli = {
-        "machine": args.machine, "head": args.head, "head_tip": args.head_tip, "head_axis": args.head_axis,
-        "part": args.part, "standoff": args.standoff, "pivot": args.pivot, "max_step": args.max_step,
-        "max_tilt": args.max_tilt, "pitch": args.pitch, "clearance": args.clearance, "strategy": args.strategy,
-        "bead_radius": args.bead_radius, "tip_allowance": args.tip_allowance, "deposit_codes": args.deposit_codes,
-        "window": args.window, "check": args.check, "report": args.report, "diff": args.diff, "html": args.html,
-        "device": args.device, "quiet": args.quiet, "verbose": args.verbose,
-    }
+    cli = {name: getattr(args, name, None) for name in OPTION_NAMES}  # None: not given on the command line
     return build_options(config, cli, where=str(path))
 
 
-def _open_input(path: str) -> BinaryIO:
-    if path == "-":
-        return sys.stdin.buffer
-    p = Path(path)
-    if p.is_dir():
-        raise NcfixError(f"cannot read '{path}': it is a folder", fix="give the NC program's file path")
-    try:
-        return open(p, "rb")
-    except FileNotFoundError:
-        raise NcfixError(f"cannot read '{path}': no such file", fix="check the path") from None
-    except OSError as exc:
-        raise NcfixError(f"cannot read '{path}': {exc.strerror}", fix="check the file's permissions") from None
-
-
 def _run(args: argparse.Namespace, options: Options) -> int:
-    from ncfix.fileio import atomic_output, atomic_write_text
-    from ncfix.pipeline import run
+    from ncfix.api import process_options
 
-    source = "<stdin>" if args.input == "-" else args.input
-    src = _open_input(args.input)
-    try:
-        if args.output:
-            with atomic_output(args.output) as dst:
-                report = run(src, dst, options, source)
-        else:
-            report = run(src, sys.stdout.buffer, options, source)
-            sys.stdout.buffer.flush()
-    finally:
-        if src is not sys.stdin.buffer:
-            src.close()
-    if options.report:
-        report.write_json(options.report)
-    if options.diff:
-        atomic_write_text(options.diff, report.unified_diff(source, args.output or "<stdout>"))
+    src = sys.stdin.buffer if args.input == "-" else args.input
+    dst = args.output if args.output else sys.stdout.buffer
+    with _progress(src, enabled=not options.quiet) as progress:
+        report = process_options(src, dst, options, progress=progress)
     if not options.quiet:
         from ncfix.summary import print_summary
 
         print_summary(report, verbose=options.verbose)
     return report.exit_code
+
+
+@contextlib.contextmanager
+def _progress(src: str | BinaryIO, enabled: bool) -> Iterator[Callable[[int, int], None] | None]:
+    """A rich progress bar on standard error while the program streams: by bytes when the input's
+    size is known, else a line count. Only when standard error is a terminal, never with -q."""
+    if not enabled or not _stderr_is_terminal():
+        yield None
+        return
+    from rich.console import Console
+    from rich.progress import (BarColumn, DownloadColumn, Progress, SpinnerColumn, TextColumn,
+                               TimeElapsedColumn, TimeRemainingColumn)
+
+    total = _input_size(src)
+    console = Console(stderr=True)
+    lines = TextColumn("{task.fields[lines]:,} lines")
+    if total:
+        columns = (TextColumn("ncfix"), BarColumn(), DownloadColumn(), lines, TimeElapsedColumn(),
+                   TimeRemainingColumn())
+    else:
+        columns = (SpinnerColumn(), TextColumn("ncfix"), lines, TimeElapsedColumn())
+    with Progress(*columns, console=console, transient=True) as bar:
+        task = bar.add_task("ncfix", total=total or None, lines=0)
+
+        def update(bytes_done: int, lines_done: int) -> None:
+            bar.update(task, completed=bytes_done, lines=lines_done)
+
+        yield update
+
+
+def _stderr_is_terminal() -> bool:
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):
+        return False
+
+
+def _input_size(src: str | BinaryIO) -> int | None:
+    """Bytes to read, when the input is a regular file (a path, or standard input redirected from one)."""
+    try:
+        info = os.stat(src) if isinstance(src, str) else os.fstat(src.fileno())
+    except (OSError, AttributeError, ValueError, io.UnsupportedOperation):
+        return None
+    return info.st_size if stat.S_ISREG(info.st_mode) and info.st_size > 0 else None

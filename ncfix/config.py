@@ -32,6 +32,7 @@ class Options:
     pitch: float = 0.5
     clearance: float = 0.0
     strategy: str = "graph"
+    resolution: float = 1.0
     bead_radius: float = 1.0
     tip_allowance: float = 1.0
     deposit_codes: tuple[str, str] | None = None
@@ -106,7 +107,8 @@ def _convert(key: str, value: Any, source: str, config_path: str) -> Any:
         return ConfigError(f"{name} has a bad value {value!r}", where=config_path if source == "config" else None,
                            fix=expected)
 
-    if key in ("standoff", "max_step", "max_tilt", "pitch", "clearance", "bead_radius", "tip_allowance"):
+    if key in ("standoff", "max_step", "max_tilt", "pitch", "clearance", "bead_radius", "tip_allowance",
+               "resolution"):
         try:
             number = float(value)
         except (TypeError, ValueError):
@@ -116,7 +118,7 @@ def _convert(key: str, value: Any, source: str, config_path: str) -> Any:
         limits = {
             "standoff": (0.0, 1000.0, True), "max_step": (0.0, 90.0, False), "max_tilt": (0.0, 90.0, False),
             "pitch": (0.0, 50.0, False), "clearance": (0.0, 100.0, True), "bead_radius": (0.0, 100.0, True),
-            "tip_allowance": (0.0, 1000.0, True),
+            "tip_allowance": (0.0, 1000.0, True), "resolution": (0.05, 10.0, True),
         }
         lo, hi, lo_ok = limits[key]
         if number > hi or number < lo or (number == lo and not lo_ok):

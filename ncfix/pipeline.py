@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from itertools import islice
 from typing import BinaryIO, Protocol
 
@@ -60,28 +60,45 @@ def build_stages(options: Options, profile: Profile, report: Report) -> list[Sta
     checker = Checker(head.mesh, model, parts, pitch_mm=options.pitch, clearance_mm=options.clearance,
                       bead_radius_mm=options.bead_radius, tip_allowance_mm=options.tip_allowance,
                       device=options.device)
-    return [CheckStage(checker, profile, options, report, placed_parts=loaded_parts)]
+    if options.check:
+        return [CheckStage(checker, profile, options, report, placed_parts=loaded_parts)]
+    from ncfix.correct.solve import make_strategy
+    from ncfix.correct.stage import CorrectStage
+
+    return [CorrectStage(checker, profile, options, report, make_strategy(options), placed_parts=loaded_parts)]
 
 
-def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>") -> Report:
-    """Stream ``src`` to ``dst`` through the stages; returns the report (also for --check)."""
+def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>",
+        progress: Callable[[int, int], None] | None = None) -> Report:
+    """Stream ``src`` to ``dst`` through the stages; returns the report (also for --check).
+
+    ``progress(bytes_done, lines_done)`` is called after each chunk read (bytes: the sum of the
+    raw lines' lengths, so it matches the input file's size at the end).
+    """
     started = time.perf_counter()
     profile = load_profile(options.machine)
     report = Report(input=source, machine=profile.name, options=options)
     interpreter = Interpreter(profile, source, options.deposit_codes)
     stages = build_stages(options, profile, report)
     writer = Writer(profile)
+    bytes_done = lines_done = 0
 
     def emit(chunks: Iterable[Chunk]) -> None:
         for chunk in chunks:
             report.count(chunk)
-            dst.write(writer.render(chunk))
+            rendered = writer.render(chunk)
+            report.record_emitted(chunk.first_lineno, chunk.lines, rendered)
+            dst.write(rendered)
 
     for chunk in read_chunks(src, interpreter):
+        bytes_done += sum(map(len, chunk.lines))
+        lines_done += len(chunk.lines)
         chunks: Iterable[Chunk] = (chunk,)
         for stage in stages:
             chunks = [out for c in chunks for out in stage.push(c)]
         emit(chunks)
+        if progress is not None:
+            progress(bytes_done, lines_done)
     tail: list[Chunk] = []
     for stage in stages:
         tail = [out for c in tail for out in stage.push(c)] + list(stage.flush())

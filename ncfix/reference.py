@@ -198,10 +198,12 @@ class ExactReference:
         c = np.asarray(tip_mm, dtype=np.float64).reshape(3)
         r = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
         local = (centers - c) @ r
-        # Distance to the clipped head's box bounds the distance to the head from below.
+        # The signed distance to the clipped head's box bounds the signed distance to the head
+        # from below (the head lies in its box: outside it is nearer, inside it is shallower).
         box_lo, box_hi = self._bead_head.bounds
-        outside = np.maximum(np.maximum(box_lo - local, local - box_hi), 0.0)
-        lower = np.linalg.norm(outside, axis=1) - radius_mm
+        gap = np.maximum(box_lo - local, local - box_hi)
+        outside = np.linalg.norm(np.maximum(gap, 0.0), axis=1)
+        lower = np.where(gap.max(axis=1) > 0.0, outside, gap.max(axis=1)) - radius_mm
         order = np.argsort(lower)
         best = np.inf
         step = 64

@@ -4,40 +4,45 @@ from __future__ import annotations
 
 import numpy as np
 
-from ncfix.correct.candidates import cap_pattern, candidates_around
+from ncfix.correct.candidates import SphereGrid, level_candidates
 from ncfix.correct.graph import cheapest_path
-from ncfix.geometry.frames import angle_between_deg
+from ncfix.geometry.frames import angle_between_deg, rotation_from_z
 
 
-def test_cap_pattern_covers_the_cap_at_its_resolution():
-    pattern = cap_pattern(30.0, 2.0)
-    assert np.allclose(np.linalg.norm(pattern, axis=1), 1.0) and np.allclose(pattern[0], [0, 0, 1])
-    tilt = np.degrees(np.arccos(pattern[:, 2]))
-    assert tilt.max() <= 30.0 + 1e-9
-    # every direction of the cap is within 2° of a candidate
-    rng = np.random.default_rng(0)
-    t = np.radians(rng.uniform(0, 30, 2000))
-    a = rng.uniform(0, 2 * np.pi, 2000)
-    probe = np.stack([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)], axis=1)
-    nearest = np.degrees(np.arccos(np.clip(probe @ pattern.T, -1, 1))).min(axis=1)
-    assert nearest.max() < 2.0
+def test_sphere_grid_covers_the_cap_at_its_resolution():
+    grid = SphereGrid(1.0)
+    cands, valid = level_candidates(grid, np.array([[0, 0, 1.0], [np.sin(0.3), 0, np.cos(0.3)]]), 30.0)
+    assert np.allclose(np.linalg.norm(cands, axis=2), 1.0)
+    assert np.allclose(cands[:, 0], [[0, 0, 1.0], [np.sin(0.3), 0, np.cos(0.3)]])  # programmed first
+    for level in range(2):
+        dev = angle_between_deg(cands[level][valid[level]], cands[level, 0])
+        assert dev.max() <= 30.0 + 1e-9
+        # every direction of the cap is within one resolution of a candidate
+        rng = np.random.default_rng(level)
+        t = np.radians(rng.uniform(0, 29, 2000))
+        a = rng.uniform(0, 2 * np.pi, 2000)
+        probe = np.stack([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)], axis=1)
+        probe = probe @ np.asarray(rotation_from_z(cands[level, 0])).reshape(3, 3).T
+        nearest = np.degrees(np.arccos(np.clip((probe @ cands[level][valid[level]].T).max(axis=1), -1, 1)))
+        assert nearest.max() < 1.0
 
 
-def test_candidates_are_turned_onto_the_programmed_vectors():
-    programmed = np.array([[0, 0, 1.0], [np.sin(0.3), 0, np.cos(0.3)]])
-    cands = candidates_around(programmed, cap_pattern(10.0, 5.0))
-    assert np.allclose(cands[:, 0], programmed)
-    dev = angle_between_deg(cands, programmed[:, None, :])
-    assert dev.max() <= 10.0 + 1e-9
+def test_consecutive_levels_share_candidates():
+    grid = SphereGrid(1.0)
+    a = np.array([0.0, 0.0, 1.0])
+    b = np.array([np.sin(0.02), 0.0, np.cos(0.02)])
+    cands, valid = level_candidates(grid, np.stack([a, b]), 10.0)
+    shared = set(map(tuple, cands[0][valid[0]][1:])) & set(map(tuple, cands[1][valid[1]][1:]))
+    assert len(shared) > 0.8 * valid[0].sum()
 
 
 def obstacle_case(levels=40, blocked=range(15, 25), need_deg=8.0):
     programmed = np.tile([0.0, 0.0, 1.0], (levels, 1))
-    cands = candidates_around(programmed, cap_pattern(30.0, 1.0))
+    cands, valid = level_candidates(SphereGrid(1.0), programmed, 30.0)
     tilt_x = np.degrees(np.arctan2(cands[..., 0], cands[..., 2]))
-    free = np.ones(cands.shape[:2], dtype=bool)
+    free = valid.copy()
     for level in blocked:
-        free[level] = tilt_x[level] > need_deg  # only tilting toward +X by more than need_deg is free
+        free[level] &= tilt_x[level] > need_deg  # only tilting toward +X by more than need_deg is free
     return programmed, cands, free
 
 

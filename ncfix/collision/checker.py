@@ -1,47 +1,78 @@
-"""The conservative, windowed collision checker: head balls vs part distance grids, beads vs head.
+"""The conservative, windowed collision checker: a sphere tree of the head against lower-bound
+distance fields of the parts and of the beads, in torch; exact tests only where they cannot decide.
 
-Parts (torch, batched, float64 arithmetic on float32 grid values): the head model's covering
-balls are tested in a hierarchy (bounding spheres of ~44 groups, then ~4 mm sub-groups, then
-the balls) against each part's ``DistanceGrid``. A pose is *free* of a part when every ball is
-farther than radius + margin + clearance by the grid's lower bound; otherwise it is *undecided*
-and the exact test decides (coal BVH head vs part mesh, plus containment, plus the exact distance
-when a margin is asked for). A grid never says "collides" on its own, so it adds no false alarms,
-only work; and since the covering balls hold the head and the grid bound is a lower bound, a
-pose the grid calls free is free.
+Bodies. Each part is a ``DistanceGrid`` (a lower bound on the distance to the part anywhere in
+space); the beads are the store's rolling ``BeadField`` (a lower bound on the distance to the
+bead material). The head is a ``SphereTree`` over its covering balls (octree levels, 1 mm cells
+at the bottom); the deposit uses the tree of the balls that reach above the tip allowance.
 
-Deposit (numpy/scipy): bead centres near the head's group spheres are found in the bead store's
-k-d trees; beads laid after the pose (sequence number) and beads wholly below the tip allowance
-plane are dropped exactly; the rest are tested against a distance grid of the head above the tip
-allowance (head frame); beads the grid cannot clear go to the exact signed distance to the
-clipped head (the reference's own function). Same one-sided logic: the grid only clears.
+Test of a pose (tip C, rotation R) with a sweep margin (lin, ang): breadth first, a node with
+centre c and radius r is *clear* when ``lb(C + R c) > r + lin + ang·reach + clearance`` (reach =
+|c| + r: no point of the node is farther from the tip, so none moves more than lin + ang·reach
+when the tip moves lin and the head turns ang); a clear node clears its subtree. A pose is
+*free* when every path from the root ends in a clear node, else *undecided* (a ball fails, or
+more than MAX_PAIRS_PER_POSE nodes fail on one level). The bounds never say "collides": an
+undecided pose goes to the exact test (coal for parts; the exact signed distance from the bead
+centres to the clipped head for beads), which decides. So the checker calls a pose free only
+when it is free, and calls it colliding only when the exact test says so.
 
-Both take a per-pose margin: the sweeps between motion blocks (``ncfix.collision.path``) check
-sampled poses with the distance the head may move between samples.
+Sweeps (``ncfix.collision.path``) are sampled at the pitch; runs of consecutive samples are first
+certified together (coarse to fine): any sample k of a group lies within (|cumL_k - cumL_m|,
+|cumA_k - cumA_m|) of the group's middle sample m (the summed steps and turns between them), so m
+tested with margin max_k(lin_k + |ΔcumL|) and max_k(ang_k + |ΔcumA|) clears every sample of the
+group with its own margin. Groups of GROUP_LEVELS_MM of travel are tried, longest first; only the
+samples no group could clear are tested one by one. For beads, a group sees every bead of the
+window (a superset of what each of its poses sees: conservative); the exact test keeps the exact
+sequence (a pose sees the beads laid up to its own sample; the beads laid at its own sample get no
+sweep margin).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 
 import numpy as np
 import trimesh
 
-from ncfix.collision.deposit import BeadStore
+from ncfix.collision.deposit import BeadField, BeadStore
 from ncfix.collision.grid import DistanceGrid, build_distance_grid
-from ncfix.collision.head import HeadModel
+from ncfix.collision.head import HeadModel, SphereTree, build_sphere_tree
+from ncfix.geometry.distance import winding_numbers
 from ncfix.reference import ExactReference
 
-# Sub-group edge (mm) between the head model's ~44 groups and its balls: small enough that a
-# sub-group near a body holds a few dozen balls, large enough that there are only ~2,000.
-SUBGROUP_EDGE_MM = 4.0
-# A pose with more failing sub-groups than this goes straight to the exact test: expanding them
-# to balls would cost more than the exact test and could only end in "undecided" anyway.
-MAX_FAILING_SUBGROUPS = 48
-# Poses per torch batch (memory: ~44 groups x 3 float64 per pose, sub-groups on demand).
-POSE_BATCH = 2048
-# Poses per deposit batch: beads laid before a batch are committed to the k-d trees, so the
-# sequence filter only applies to the batch's own beads.
-DEPOSIT_BATCH = 256
+# Octree cell (mm) of the tree's lowest inner level: a few balls each.
+LEAF_CELL_MM = 1.0
+# The tree is entered at this level (its nodes are ~25 mm spheres): a few more lookups per pose
+# than from the root, but two fewer rounds of torch calls per batch.
+ENTRY_LEVEL = 2
+# A pose with more failing nodes than this on one level is undecided at once (exact test):
+# expanding them would cost more than the exact test and could only end in "undecided" anyway.
+MAX_PAIRS_PER_POSE = 32
+# The same for a group of samples: a group that does not clear quickly is split instead.
+GROUP_MAX_PAIRS = 8
+# Poses per torch batch.
+POSE_BATCH = 8192
+# Sample groups (mm of travel, |ΔC| + ρ·θ summed) certified together, longest first.
+GROUP_LEVELS_MM = (24.0, 6.0, 1.5)
+# A group level that clears under 5% of its groups is skipped for this many calls.
+IDLE_CALLS = 8
+# Level of the tree whose failing nodes fetch the candidate beads of an undecided pose (~2 mm).
+CANDIDATE_LEVEL = 5
+
+
+@contextmanager
+def one_thread():
+    """Run torch on one CPU thread inside the block: the lookups are memory-bound (a second thread
+    gains little), and on a busy machine torch's thread pool waits made them 5-10x slower."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
 
 
 def resolve_device(name: str) -> str:
@@ -54,65 +85,31 @@ def resolve_device(name: str) -> str:
 
 
 @dataclass
-class HeadHierarchy:
-    """The head model's balls sorted by (group, sub-group), with CSR ranges, as torch tensors."""
+class TreeTensors:
+    """A SphereTree on a torch device."""
 
-    g_centers: object
-    g_radii: object
-    g_sub_start: object
-    g_sub_count: object
-    s_centers: object
-    s_radii: object
-    s_ball_start: object
-    s_ball_count: object
-    b_centers: object
-    b_radii: object
-    n_balls: int
-    n_subgroups: int
-    n_groups: int
+    center: object
+    radius: object
+    reach: object
+    child_start: object
+    child_count: object
+    children: object  # (n, 8) int64, child ids padded with -1
+    level_start: np.ndarray
 
 
-def build_hierarchy(model: HeadModel, device: str) -> HeadHierarchy:
+def tree_tensors(tree: SphereTree, device: str) -> TreeTensors:
     import torch
 
-    c, r, g = model.centers_mm, model.radii_mm, model.group
-    lo = c.min(axis=0)
-    cell = np.floor((c - lo) / SUBGROUP_EDGE_MM).astype(np.int64)
-    dims = cell.max(axis=0) + 1
-    key = (g * dims[0] + cell[:, 0]) * dims[1] * dims[2] + cell[:, 1] * dims[2] + cell[:, 2]
-    order = np.lexsort((key, g))
-    c, r, g, key = c[order], r[order], g[order], key[order]
-    ukey, b_start, b_count = np.unique(key, return_index=True, return_counts=True)
-    sub_of = np.repeat(np.arange(len(ukey)), b_count)
-    s_group = g[b_start]
-    s_lo = np.full((len(ukey), 3), np.inf)
-    s_hi = np.full((len(ukey), 3), -np.inf)
-    np.minimum.at(s_lo, sub_of, c - r[:, None])
-    np.maximum.at(s_hi, sub_of, c + r[:, None])
-    s_c = 0.5 * (s_lo + s_hi)
-    s_r = np.zeros(len(ukey))
-    np.maximum.at(s_r, sub_of, np.linalg.norm(c - s_c[sub_of], axis=1) + r)
-    n_groups = len(model.group_radii_mm)
-    g_count = np.bincount(s_group, minlength=n_groups)
-    g_start = np.cumsum(g_count) - g_count
-    t = lambda a, dt=torch.float64: torch.as_tensor(np.ascontiguousarray(a), dtype=dt, device=device)  # noqa: E731
-    return HeadHierarchy(
-        g_centers=t(model.group_centers_mm), g_radii=t(model.group_radii_mm),
-        g_sub_start=t(g_start, torch.int64), g_sub_count=t(g_count, torch.int64),
-        s_centers=t(s_c), s_radii=t(s_r), s_ball_start=t(b_start, torch.int64), s_ball_count=t(b_count, torch.int64),
-        b_centers=t(c), b_radii=t(r), n_balls=len(r), n_subgroups=len(ukey), n_groups=n_groups,
-    )
+    def t(a, dt=torch.float64):
+        return torch.as_tensor(np.ascontiguousarray(a), dtype=dt, device=device)
 
-
-def _expand(pair_pose, pair_item, start, count):
-    """CSR expansion: each (pose, item) pair → (pose, child) for the item's children."""
-    import torch
-
-    n = count[pair_item]
-    pose = torch.repeat_interleave(pair_pose, n)
-    first = torch.repeat_interleave(start[pair_item], n)
-    offset = torch.arange(int(n.sum()), device=pose.device) - torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
-    return pose, first + offset
+    width = max(1, int(tree.child_count.max()))
+    children = np.full((len(tree.radius_mm), width), -1, dtype=np.int64)
+    slot = np.arange(width)
+    has = slot[None, :] < tree.child_count[:, None]
+    children[has] = (tree.child_start[:, None] + slot[None, :])[has]
+    return TreeTensors(t(tree.center_mm), t(tree.radius_mm), t(tree.reach_mm), t(tree.child_start, torch.int64),
+                       t(tree.child_count, torch.int64), t(children, torch.int64), tree.level_start)
 
 
 @dataclass
@@ -137,6 +134,7 @@ class CheckerStats:
     poses: int = 0
     part_undecided: int = 0
     deposit_undecided: int = 0
+    exact_bead_poses: int = 0
     exact_bead_tests: int = 0
     seconds: dict = field(default_factory=dict)
 
@@ -162,53 +160,128 @@ class Checker:
         self.model = model
         self.head = head
         self.rho_mm = float(np.linalg.norm(head.vertices, axis=1).max())
-        self.hier = build_hierarchy(model, self.device)
+        self.tree = tree_tensors(build_sphere_tree(model.centers_mm, model.radii_mm, LEAF_CELL_MM), self.device)
         self.parts = [Part(name, build_distance_grid(mesh, pitch_mm, closed=closed, name=name, bounds_mm=part_bounds_mm),
                            mesh) for name, mesh, closed in parts]
         self.reference = ExactReference(head, {p.name: p.mesh for p in self.parts},
                                         tip_allowance_mm=self.tip_allowance_mm)
         self.stats = CheckerStats()
+        self._idle_levels: dict = {}
         if self.bead_radius_mm > 0:
             clipped = self.reference._bead_head
-            # The head above the allowance, in the head frame, at the pitch.
+            # The head above the allowance, in the head frame, at the pitch (filters candidate beads).
             self.head_grid = build_distance_grid(clipped, self.pitch_mm, closed=True, name="head")
-            # Only balls reaching above the allowance plane can meet a bead (same groups).
+            # Only balls reaching above the allowance plane can meet a bead.
             above = model.centers_mm[:, 2] + model.radii_mm > self.tip_allowance_mm
-            dep_model = replace(model, centers_mm=model.centers_mm[above], radii_mm=model.radii_mm[above],
-                                zone=model.zone[above], interior=model.interior[above], group=model.group[above])
-            h = build_hierarchy(dep_model, "cpu")
-            self.dep_hier = {k: (v.numpy() if hasattr(v, "numpy") else v) for k, v in vars(h).items()}
+            self.dep_tree = tree_tensors(build_sphere_tree(model.centers_mm[above], model.radii_mm[above],
+                                                           LEAF_CELL_MM), self.device)
+            self._head_triangles_clipped = np.asarray(clipped.triangles, dtype=np.float64)
+
+    # -- the sphere-tree test ----------------------------------------------------------------
+    def _tensor(self, a, dtype=None):
+        return self.torch.as_tensor(np.ascontiguousarray(a), dtype=dtype or self.torch.float64, device=self.device)
+
+    def _undecided(self, tree: TreeTensors, lower_bound, C, R, lin, ang, cap: int = MAX_PAIRS_PER_POSE) -> np.ndarray:
+        """(n,) bool: poses (torch C (n, 3), R (n, 3, 3), margins lin, ang (n,)) the bound cannot clear."""
+        torch = self.torch
+        n = C.shape[0]
+        dev = C.device
+        entry = min(ENTRY_LEVEL, len(tree.level_start) - 2)
+        first, last = int(tree.level_start[entry]), int(tree.level_start[entry + 1])
+        width = last - first
+        pose = torch.arange(n, device=dev).repeat_interleave(width)
+        node = torch.arange(first, last, device=dev).repeat(n)
+        undecided = torch.zeros(n, dtype=torch.bool, device=dev)
+        extra = self.clearance_mm
+        while pose.numel():
+            pos = C[pose] + torch.bmm(R[pose], tree.center[node].unsqueeze(-1)).squeeze(-1)
+            need = tree.radius[node] + lin[pose] + ang[pose] * tree.reach[node] + extra
+            fail = lower_bound(pos) <= need
+            pose, node = pose[fail], node[fail]
+            child = tree.children[node]
+            leaf = child[:, 0] < 0
+            if bool(leaf.any()):
+                undecided[pose[leaf]] = True
+            keep = ~undecided[pose]
+            pose, child = pose[keep], child[keep]
+            if not pose.numel():
+                break
+            crowded = torch.bincount(pose, minlength=n) > cap
+            if bool(crowded.any()):
+                undecided |= crowded
+                keep = ~crowded[pose]
+                pose, child = pose[keep], child[keep]
+            valid = child >= 0
+            pose = pose.unsqueeze(1).expand_as(child)[valid]
+            node = child[valid]
+        return undecided.cpu().numpy()
+
+    def _failing_nodes(self, tree: TreeTensors, lower_bound, C, R, lin, ang, level: int):
+        """(pose, node) pairs (numpy) of the nodes at ``level`` whose sphere the bound cannot clear."""
+        torch = self.torch
+        n = C.shape[0]
+        dev = C.device
+        level = min(level, len(tree.level_start) - 2)
+        pose = torch.arange(n, device=dev)
+        node = torch.zeros(n, dtype=torch.int64, device=dev)
+        for lev in range(level + 1):
+            pos = C[pose] + torch.bmm(R[pose], tree.center[node].unsqueeze(-1)).squeeze(-1)
+            need = tree.radius[node] + lin[pose] + ang[pose] * tree.reach[node] + self.clearance_mm
+            fail = lower_bound(pos) <= need
+            pose, node = pose[fail], node[fail]
+            if lev < level:
+                pose, node = _expand(pose, tree.child_start[node], tree.child_count[node])
+        return pose.cpu().numpy(), node.cpu().numpy()
+
+    def _undecided_batched(self, tree, lower_bound, C, R, lin, ang, cap: int = MAX_PAIRS_PER_POSE) -> np.ndarray:
+        out = np.zeros(len(C), dtype=bool)
+        with one_thread():
+            for a in range(0, len(C), POSE_BATCH):
+                b = min(len(C), a + POSE_BATCH)
+                out[a:b] = self._undecided(tree, lower_bound, self._tensor(C[a:b]), self._tensor(R[a:b]),
+                                           self._tensor(lin[a:b]), self._tensor(ang[a:b]), cap)
+        return out
+
+    def _grouped_undecided(self, tree, lower_bound, C, R, lin, ang, cum_lin, cum_ang) -> np.ndarray:
+        """(n,) bool: samples not cleared, coarse to fine (module doc). cum_lin / cum_ang (n,): summed
+        tip steps and turns from the first sample (|ΔC| and θ between consecutive samples)."""
+        n = len(C)
+        todo = np.arange(n)
+        travel = cum_lin + self.rho_mm * cum_ang
+        for level, length in enumerate(GROUP_LEVELS_MM):
+            if len(todo) < 2:
+                break
+            # A level that cleared almost nothing last time for this tree is skipped for a while
+            # (speed only: the finer levels and the samples decide anyway).
+            skip_key = (id(tree), id(getattr(lower_bound, "__self__", lower_bound)), level)
+            idle = self._idle_levels.get(skip_key, 0)
+            if idle > 0:
+                self._idle_levels[skip_key] = idle - 1
+                continue
+            key = np.floor(travel[todo] / length).astype(np.int64)
+            start = np.concatenate([[0], np.nonzero(key[1:] != key[:-1])[0] + 1])
+            size = np.diff(np.concatenate([start, [len(todo)]]))
+            if (size >= 2).sum() == 0:
+                continue
+            gid = np.repeat(np.arange(len(start)), size)
+            rep = todo[start + size // 2]
+            member_rep = rep[gid]
+            glin = np.maximum.reduceat(lin[todo] + np.abs(cum_lin[todo] - cum_lin[member_rep]), start)
+            gang = np.maximum.reduceat(ang[todo] + np.abs(cum_ang[todo] - cum_ang[member_rep]), start)
+            multi = np.nonzero(size >= 2)[0]
+            undecided = self._undecided_batched(tree, lower_bound, C[rep[multi]], R[rep[multi]], glin[multi],
+                                                gang[multi], GROUP_MAX_PAIRS)
+            cleared = np.zeros(len(start), dtype=bool)
+            cleared[multi[~undecided]] = True
+            if (~undecided).sum() < 0.05 * len(multi):
+                self._idle_levels[skip_key] = IDLE_CALLS
+            todo = todo[~cleared[gid]]
+        out = np.zeros(n, dtype=bool)
+        if len(todo):
+            out[todo] = self._undecided_batched(tree, lower_bound, C[todo], R[todo], lin[todo], ang[todo])
+        return out
 
     # -- parts -------------------------------------------------------------------------------
-    def _part_undecided(self, grid: DistanceGrid, C, R, margin) -> np.ndarray:
-        """Indices of poses (torch batch) the grid cannot clear of this part."""
-        torch = self.torch
-        h = self.hier
-        n = C.shape[0]
-        pos = C[:, None, :] + torch.einsum("nij,gj->ngi", R, h.g_centers)
-        lb = grid.lower_bound(pos.reshape(-1, 3)).reshape(n, -1)
-        fail = lb <= h.g_radii[None, :] + margin[:, None] + self.clearance_mm
-        pose, grp = fail.nonzero(as_tuple=True)
-        if len(pose) == 0:
-            return np.zeros(0, dtype=np.int64)
-        pose, sub = _expand(pose, grp, h.g_sub_start, h.g_sub_count)
-        pos = C[pose] + torch.einsum("nij,nj->ni", R[pose], h.s_centers[sub])
-        fail = grid.lower_bound(pos) <= h.s_radii[sub] + margin[pose] + self.clearance_mm
-        pose, sub = pose[fail], sub[fail]
-        if len(pose) == 0:
-            return np.zeros(0, dtype=np.int64)
-        per_pose = torch.bincount(pose, minlength=n)
-        crowded = per_pose > MAX_FAILING_SUBGROUPS
-        keep = ~crowded[pose]
-        pose, sub = pose[keep], sub[keep]
-        undecided = crowded.clone()
-        if len(pose):
-            pose, ball = _expand(pose, sub, h.s_ball_start, h.s_ball_count)
-            pos = C[pose] + torch.einsum("nij,nj->ni", R[pose], h.b_centers[ball])
-            fail = grid.lower_bound(pos) <= h.b_radii[ball] + margin[pose] + self.clearance_mm
-            undecided[pose[fail]] = True
-        return undecided.nonzero().reshape(-1).cpu().numpy()
-
     def _exact_part(self, k: int, c: np.ndarray, r: np.ndarray, margin: float) -> bool:
         import coal
 
@@ -227,75 +300,121 @@ class Checker:
             return bool(d < need)
         return False
 
-    def check_parts(self, C: np.ndarray, R: np.ndarray, margin: np.ndarray) -> np.ndarray:
-        """(n, n_parts) bool: which parts each pose (tip C (n, 3), rotation R (n, 3, 3)) hits."""
-        torch = self.torch
+    def sweep_parts(self, C: np.ndarray, R: np.ndarray, lin: np.ndarray, ang: np.ndarray,
+                    cum_lin: np.ndarray | None = None, cum_ang: np.ndarray | None = None, *,
+                    exact: bool = True, move_of: np.ndarray | None = None) -> np.ndarray:
+        """(n, n_parts) bool: which parts each pose hits, with sweep margins lin (mm) and ang (rad)
+        per pose (a head point at distance d from the tip is checked with lin + ang·d). With
+        cum_lin / cum_ang (consecutive samples) groups are certified first. Without ``exact``
+        an undecided pose counts as hitting (conservative). With ``move_of`` (n,) (ascending move
+        of each sample) only the last hitting sample of each move is found: the exact tests go
+        from a move's last sample backwards and stop at its first hit (earlier ones stay False)."""
         n = len(C)
         out = np.zeros((n, len(self.parts)), dtype=bool)
-        for a in range(0, n, POSE_BATCH):
-            b = min(n, a + POSE_BATCH)
-            Ct = torch.as_tensor(C[a:b], dtype=torch.float64, device=self.device)
-            Rt = torch.as_tensor(R[a:b], dtype=torch.float64, device=self.device)
-            Mt = torch.as_tensor(margin[a:b], dtype=torch.float64, device=self.device)
-            for k, part in enumerate(self.parts):
-                for i in self._part_undecided(part.grid, Ct, Rt, Mt):
-                    j = a + int(i)
-                    self.stats.part_undecided += 1
-                    out[j, k] = self._exact_part(k, C[j], R[j], float(margin[j]))
+        for k, part in enumerate(self.parts):
+            if cum_lin is None:
+                undecided = self._undecided_batched(self.tree, part.grid.lower_bound, C, R, lin, ang)
+            else:
+                undecided = self._grouped_undecided(self.tree, part.grid.lower_bound, C, R, lin, ang, cum_lin, cum_ang)
+            idx = np.nonzero(undecided)[0]
+            self.stats.part_undecided += len(idx)
+            if not exact:
+                out[idx, k] = True
+                continue
+            if move_of is not None:
+                idx = idx[np.lexsort((-idx, move_of[idx]))]
+            hit_move = -1
+            for j in idx:
+                if move_of is not None and move_of[j] == hit_move:
+                    continue
+                out[j, k] = self._exact_part(k, C[j], R[j], float(lin[j] + self.rho_mm * ang[j]))
+                if out[j, k] and move_of is not None:
+                    hit_move = move_of[j]
         return out
+
+    def check_parts(self, C: np.ndarray, R: np.ndarray, margin: np.ndarray) -> np.ndarray:
+        """(n, n_parts) bool: which parts each pose (tip C (n, 3), rotation R (n, 3, 3)) hits, every
+        head point checked with ``margin`` (n,) mm."""
+        C = np.asarray(C, dtype=np.float64).reshape(-1, 3)
+        R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
+        return self.sweep_parts(C, R, np.asarray(margin, dtype=np.float64).reshape(-1), np.zeros(len(C)))
 
     def free_poses(self, C: np.ndarray, R: np.ndarray, seq: np.ndarray, store: BeadStore,
                    pending: np.ndarray, pending_seq: np.ndarray) -> np.ndarray:
-        """(n,) bool: poses (no sweep) free of every part and of the beads they see: for testing
-        candidate orientations in batch. ``pending`` beads are seen by poses with seq >= theirs."""
+        """(n,) bool: poses (no sweep) *certainly* free of every part and of the beads: for testing
+        candidate orientations in batch. Fast: no exact test; a pose the bounds cannot clear is
+        not free (errs toward "collides"; near contact a free pose may be refused). Every pending
+        bead counts for every pose (a superset of what each sees)."""
+        C = np.asarray(C, dtype=np.float64).reshape(-1, 3)
+        R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
         zero = np.zeros(len(C))
-        free = ~self.check_parts(C, R, zero).any(axis=1)
+        free = ~self.sweep_parts(C, R, zero, zero, exact=False).any(axis=1)
         if self.bead_radius_mm > 0 and free.any() and (store.count or len(pending)):
             idx = np.nonzero(free)[0]
-            hit, _ = self.check_deposit(C[idx], R[idx], zero[idx], seq[idx], store, pending, pending_seq)
-            free[idx[hit]] = False
+            bead_field = store.field(self.pitch_mm)
+            with bead_field.overlay(pending):
+                undecided = self._undecided_batched(self.dep_tree, bead_field.lower_bound, C[idx], R[idx],
+                                                    zero[idx], zero[idx])
+            free[idx[undecided]] = False
         return free
 
     # -- deposit -----------------------------------------------------------------------------
-    def _deposit_pairs(self, C, R, extra, near):
-        """(pose, sub-group) pairs whose sphere may come within its radius + extra of a bead (numpy).
-
-        Beads are then fetched per sub-group (not per ball): fewer queries and duplicates, and the
-        head grid prunes the few extra candidates exactly as well."""
-        h = self.dep_hier
-        n = len(C)
-        pos = C[:, None, :] + np.einsum("nij,gj->ngi", R, h["g_centers"])
-        reach = h["g_radii"][None, :] + extra[:, None]
-        fail = near(pos.reshape(-1, 3), reach.reshape(-1)).reshape(n, -1)
-        pose, item = np.nonzero(fail)
-        for level in ("s",):
-            if len(pose) == 0:
-                break
-            parent = "g" if level == "s" else "s"
-            start = h[f"{parent}_sub_start"] if level == "s" else h["s_ball_start"]
-            count = h[f"{parent}_sub_count"] if level == "s" else h["s_ball_count"]
-            cnt = count[item]
-            pose = np.repeat(pose, cnt)
-            item = np.repeat(start[item], cnt) + (np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt))
-            centers = h["s_centers"] if level == "s" else h["b_centers"]
-            radii = h["s_radii"] if level == "s" else h["b_radii"]
-            pos = C[pose] + np.einsum("nij,nj->ni", R[pose], centers[item])
-            ok = near(pos, radii[item] + extra[pose])
-            pose, item = pose[ok], item[ok]
-        return pose, item
-
     def check_deposit(self, C: np.ndarray, R: np.ndarray, margin: np.ndarray, seq: np.ndarray,
                       store: BeadStore, pending: np.ndarray, pending_seq: np.ndarray,
                       step_mm: np.ndarray | None = None, turn_rad: np.ndarray | None = None,
                       ) -> tuple[np.ndarray, np.ndarray]:
-        """Deposit hits (n,) bool and exact clearances (n,) (+inf where the grid cleared).
+        """Deposit hits (n,) bool and exact clearances (n,) (+inf where the field cleared).
 
         store : beads laid before every pose of the batch; pending (m, 3) / pending_seq (m,):
         beads of the current window, seen by poses with seq >= their pending_seq.
         margin : (n,) sweep margin, |ΔC| + ρ·θ; with step_mm = |ΔC| (n,) and turn_rad = θ (n,)
-        the margin near a bead is tightened to |ΔC| + θ·(reach of the head points that can
-        touch it): a head point at distance r from the tip moves at most |ΔC| + r·θ.
+        the margin of a head point at distance d from the tip is |ΔC| + θ·d.
         """
+        C = np.asarray(C, dtype=np.float64).reshape(-1, 3)
+        R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
+        n = len(C)
+        if step_mm is None or turn_rad is None:
+            step_mm, turn_rad = np.asarray(margin, dtype=np.float64), np.zeros(n)
+        return self.sweep_deposit(C, R, step_mm, turn_rad, None, None, seq, store, pending, pending_seq)
+
+    def sweep_deposit(self, C, R, lin, ang, cum_lin, cum_ang, seq, store: BeadStore, pending, pending_seq, *,
+                      stamped: bool = False, move_of: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Deposit hits (n,) and exact clearances (n,) with sweep margins (lin, ang) per pose and,
+        given cum_lin / cum_ang, groups certified first. ``stamped``: the pending beads are in the
+        store's field already (else they are overlaid for the call). ``move_of``: as in
+        ``sweep_parts`` (the last undecided sample of each move first, the rest of a move only
+        when that one is free)."""
+        n = len(C)
+        hit = np.zeros(n, dtype=bool)
+        clearance = np.full(n, np.inf)
+        if self.bead_radius_mm <= 0 or n == 0 or (store.count == 0 and len(pending) == 0):
+            return hit, clearance
+        bead_field = store.field(self.pitch_mm)
+        with bead_field.overlay(np.zeros((0, 3)) if stamped else pending):
+            if cum_lin is None:
+                undecided = self._undecided_batched(self.dep_tree, bead_field.lower_bound, C, R, lin, ang)
+            else:
+                undecided = self._grouped_undecided(self.dep_tree, bead_field.lower_bound, C, R, lin, ang,
+                                                    cum_lin, cum_ang)
+            idx = np.nonzero(undecided)[0]
+            self.stats.deposit_undecided += len(idx)
+            passes = [idx]
+            if move_of is not None and len(idx):
+                last = np.ones(len(idx), dtype=bool)
+                last[:-1] = move_of[idx[1:]] != move_of[idx[:-1]]
+                passes = [idx[last], idx[~last]]
+            for k, sel in enumerate(passes):
+                if k and move_of is not None:
+                    hit_moves = np.unique(move_of[hit])
+                    sel = sel[~np.isin(move_of[sel], hit_moves)]
+                if len(sel):
+                    hit[sel], clearance[sel] = self._exact_deposit(C[sel], R[sel], lin[sel], ang[sel], seq[sel],
+                                                                   store, pending, pending_seq, bead_field)
+        return hit, clearance
+
+    def _exact_deposit(self, C, R, lin, ang, seq, store: BeadStore, pending, pending_seq, bead_field: BeadField):
+        """The exact deposit test of undecided poses: candidate beads near the failing ~4 mm nodes,
+        the sequence filter, the allowance plane, the head grid, then the exact signed distance."""
         from scipy.spatial import cKDTree
 
         from ncfix.collision.deposit import query_pairs
@@ -303,49 +422,52 @@ class Checker:
         n = len(C)
         hit = np.zeros(n, dtype=bool)
         clearance = np.full(n, np.inf)
-        if self.bead_radius_mm <= 0 or n == 0 or (store.count == 0 and len(pending) == 0):
-            return hit, clearance
         bead_r = self.bead_radius_mm
         ta = self.tip_allowance_mm
-        extra = bead_r + margin + self.clearance_mm
-        pend_tree = cKDTree(pending) if len(pending) else None
-
-        def near(points, reach):
-            upper = float(reach.max()) if len(reach) else 0.0
-            d = store.nearest(points, upper) if store.count else np.full(len(points), np.inf)
-            if pend_tree is not None:
-                d = np.minimum(d, pend_tree.query(points, k=1, distance_upper_bound=upper)[0])
-            return d <= reach
-
-        pose, sub = self._deposit_pairs(C, R, extra, near)
+        torch = self.torch
+        pose, node = [], []
+        for a in range(0, n, POSE_BATCH):
+            b = min(n, a + POSE_BATCH)
+            with one_thread():
+                p, q = self._failing_nodes(self.dep_tree, bead_field.lower_bound, self._tensor(C[a:b]),
+                                           self._tensor(R[a:b]), self._tensor(lin[a:b]),
+                                           self._tensor(ang[a:b]), CANDIDATE_LEVEL)
+            pose.append(p + a)
+            node.append(q)
+        pose, node = np.concatenate(pose), np.concatenate(node)
         if len(pose) == 0:
             return hit, clearance
-        h = self.dep_hier
-        centers = C[pose] + np.einsum("nij,nj->ni", R[pose], h["s_centers"][sub])
-        radii = h["s_radii"][sub] + extra[pose]
+        tree = self.dep_tree
+        centers_local = tree.center[torch.as_tensor(node, device=tree.center.device)].cpu().numpy()
+        radii = tree.radius[torch.as_tensor(node, device=tree.center.device)].cpu().numpy()
+        reach = tree.reach[torch.as_tensor(node, device=tree.center.device)].cpu().numpy()
+        centers = C[pose] + np.einsum("nij,nj->ni", R[pose], centers_local)
+        query_r = radii + lin[pose] + ang[pose] * reach + bead_r + self.clearance_mm
         poses, ids, pts, fresh = [], [], [], []
         if store.count:
-            q, gid, p = store.within(centers, radii)
+            q, gid, p = store.within(centers, query_r)
             poses.append(pose[q]), ids.append(gid), pts.append(p), fresh.append(np.zeros(len(q), dtype=bool))
-        if pend_tree is not None:
-            q, idx = query_pairs(pend_tree, centers, radii)
+        if len(pending):
+            q, idx = query_pairs(cKDTree(pending), centers, query_r)
             seen = pending_seq[idx] <= seq[pose[q]]
             poses.append(pose[q][seen]), ids.append(idx[seen] + store.count), pts.append(pending[idx[seen]])
             fresh.append(pending_seq[idx[seen]] == seq[pose[q][seen]])
+        if not poses:
+            return hit, clearance
         pose = np.concatenate(poses)
         if len(pose) == 0:
             return hit, clearance
         gid, pts, fresh = np.concatenate(ids), np.concatenate(pts), np.concatenate(fresh)
-        # One test per (pose, bead): a bead is found through several balls.
+        # One test per (pose, bead): a bead is found through several nodes.
         _, first = np.unique(pose * (store.count + len(pending) + 1) + gid, return_index=True)
         pose, pts, fresh = pose[first], pts[first], fresh[first]
         local = np.einsum("nji,nj->ni", R[pose], pts - C[pose])  # R^T (b - C): head frame
-        # A bead laid in this very step exists only once the head reaches this sample: the poses
-        # swept since the previous sample never see it, so it gets no sweep margin.
-        swept = margin[pose]
-        if step_mm is not None and turn_rad is not None:
-            reach = np.linalg.norm(local, axis=1) + bead_r + self.clearance_mm + swept
-            swept = np.minimum(swept, step_mm[pose] + turn_rad[pose] * reach)
+        # A head point at distance d from the tip moves at most lin + ang·d between samples; the
+        # points that can touch this bead are within |local| + r + clearance + margin of the tip.
+        # A bead laid at this very sample exists only once the head is here: no sweep margin.
+        swept = lin[pose] + ang[pose] * self.rho_mm
+        swept = np.minimum(swept, lin[pose] + ang[pose] * (np.linalg.norm(local, axis=1) + bead_r
+                                                           + self.clearance_mm + swept))
         need = bead_r + self.clearance_mm + np.where(fresh, 0.0, swept)
         # Beads wholly below the allowance plane cannot reach the checked head (exact).
         keep = local[:, 2] + need > ta
@@ -356,27 +478,46 @@ class Checker:
         pose, local, need, lb = pose[keep], local[keep], need[keep], lb[keep]
         if len(pose) == 0:
             return hit, clearance
-        self.stats.deposit_undecided += len(np.unique(pose))
-        # Exact test in rounds, most suspect beads first; a pose stops at its first hit.
+        self.stats.exact_bead_poses += len(np.unique(pose))
+        # Exact test, most suspect bead first, a pose stops at its first hit: the bead is within
+        # ``need`` of the clipped head when a sphere of that radius touches its surface (coal) or
+        # the centre is inside it (winding number, only where the head grid allows it).
+        import coal
+
+        ref = self.reference
         order = np.lexsort((lb, pose))
-        pose, local, need = pose[order], local[order], need[order]
-        starts = np.searchsorted(pose, pose, side="left")
-        rank = np.arange(len(pose)) - starts
-        lo, width = 0, 1
-        while True:
-            sel = (rank >= lo) & (rank < lo + width) & ~hit[pose]
-            if not sel.any():
-                if lo > rank.max():
-                    break
-                lo, width = lo + width, width * 2
+        identity = coal.Transform3s()
+        eye = np.eye(3)
+        first_hit = {}
+        for i in order:
+            p = int(pose[i])
+            if p in first_hit:
                 continue
-            idx = np.nonzero(sel)[0]
-            self.stats.exact_bead_tests += len(idx)
-            signed = self.reference.signed_distance_to_clipped_head(local[idx]) - bead_r
-            np.minimum.at(clearance, pose[idx], signed)
-            hit[pose[idx][signed < need[idx] - bead_r]] = True
-            lo, width = lo + width, width * 2
+            self.stats.exact_bead_tests += 1
+            res = coal.CollisionResult()
+            touch = coal.collide(ref._bead_bvh, identity, coal.Sphere(float(need[i])), coal.Transform3s(eye, local[i]),
+                                 ref._creq, res) > 0
+            if not touch and lb[i] <= 0:
+                touch = bool(winding_numbers(local[i][None], self._head_triangles_clipped)[0] > 0.5)
+            if touch:
+                first_hit[p] = i
+        if first_hit:
+            ps = np.fromiter(first_hit.keys(), dtype=np.int64)
+            bs = np.fromiter(first_hit.values(), dtype=np.int64)
+            hit[ps] = True
+            clearance[ps] = ref.signed_distance_to_clipped_head(local[bs]) - bead_r
         return hit, clearance
+
+
+def _expand(pose, start, count):
+    """CSR expansion: each (pose, node) pair → (pose, child) for the node's ``count`` children from ``start``."""
+    import torch
+
+    pose = torch.repeat_interleave(pose, count)
+    first = torch.repeat_interleave(start, count)
+    total = first.numel()
+    offset = torch.arange(total, device=pose.device) - torch.repeat_interleave(torch.cumsum(count, 0) - count, count)
+    return pose, first + offset
 
 
 def rotation_angle(ra: np.ndarray, rb: np.ndarray) -> np.ndarray:

@@ -9,9 +9,15 @@ program; a program whose first E word comes later is read with the other rules.
 
 Beads are spheres of the bead radius centred on the deposited path through P, sampled at most
 half a pitch apart (each depositing move from its start to its end point, both included).
-They are kept in a log-structured set of k-d trees (sizes doubling, merged as they fill), so
-adding is amortised O(log n) per bead and a query visits O(log n) trees. Memory grows with the
-beads laid (12 bytes each), which is the deposited volume, not the program's length of travel.
+
+``BeadStore`` keeps them twice:
+
+- the exact centres, for the exact fallback (log-structured k-d trees, built only when a query
+  needs them: a program that never comes near its beads never builds one; 24 bytes a bead);
+- ``BeadField``, a rolling distance field that lower-bounds the distance from any point to the
+  bead material, for the fast test (see its doc). Its memory is that of the box around the beads
+  (one byte per pitch³ cell of the bead box padded by a few mm, plus a 4 mm coarse grid), not the
+  program's length: re-printing or travelling over the same region costs nothing more.
 """
 
 from __future__ import annotations
@@ -53,11 +59,29 @@ def depositing(rule: DepositRule, motion: np.ndarray, e_delta: np.ndarray, depos
     return feed
 
 
-class BeadStore:
-    """Bead sphere centres laid so far (workpiece mm), searchable by distance.
+# The bead field (see BeadField). The fine grid certifies distances up to FINE_REACH_MM (uint8,
+# FINE_REACH_MM / 255 per step): enough for the head's smallest balls with a sweep margin of a
+# couple of millimetres; beyond it the coarse grid (4 mm cells) and the beads' box take over.
+FINE_REACH_MM = 3.0
+FINE_LEVELS = 255
+COARSE_CELLS = 8  # fine cells per coarse cell edge
+COARSE_REACH_MM = 32.0  # the coarse grid certifies distances up to this (the head's large spheres)
+# Bead chains are stamped as chords through several beads when every bead lies within this of the
+# chord (the stamped distance is lowered by the deviation, so it stays a lower bound).
+CHORD_TOL_MM = 0.01
+CHORD_MAX_POINTS = 256
+CHORD_MAX_MM = 12.0  # longer chords waste their bounding box on slanted paths
+# Subtracted from every stamped distance: covers float rounding of the distance arithmetic.
+FIELD_SLACK_MM = 1e-5
+GROW_MM = 24.0  # grids grow by at least this on a side, so a growing print reallocates rarely
 
-    ``add`` appends centres; ``pending`` holds the current window's centres with their sequence
-    numbers (the pose index from which on they exist) until ``commit`` moves them into the trees.
+
+class BeadStore:
+    """Bead sphere centres laid so far (workpiece mm): exact centres and the rolling field.
+
+    ``add`` appends centres (consecutive centres at most ``link`` apart form a chain, stamped into
+    the field as a chain of segments, which holds every sphere on it). The k-d trees over the
+    exact centres are built on the first query that needs them and merged as beads come in.
     """
 
     def __init__(self, radius_mm: float, leaf_size: int = 4096):
@@ -67,17 +91,35 @@ class BeadStore:
         self._buffer_n = 0
         self._leaf = leaf_size
         self.count = 0
+        self._field: BeadField | None = None
+        self._unstamped: list[np.ndarray] = []
 
     # -- building ----------------------------------------------------------------------------
     def add(self, points_mm: np.ndarray) -> None:
         pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
         if len(pts) == 0:
             return
+        self._add_exact(pts)
+        if self._field is not None:
+            self._field.add(pts)
+        else:
+            self._unstamped.append(pts)
+
+    def _add_exact(self, pts: np.ndarray) -> None:
+        """Only the exact centres (the caller stamped the field already)."""
         self._buffer.append(pts)
         self._buffer_n += len(pts)
         self.count += len(pts)
-        if self._buffer_n >= self._leaf:
-            self._flush_buffer()
+
+    def field(self, pitch_mm: float) -> "BeadField":
+        """The rolling distance field of every bead added so far, at ``pitch_mm`` (made on first use)."""
+        if self._field is None or self._field.pitch_mm != float(pitch_mm):
+            self._field = BeadField(self.radius_mm, pitch_mm)
+            self._unstamped = [p for _, p in self._levels] + list(self._buffer)
+        for pts in self._unstamped:
+            self._field.add(pts)
+        self._unstamped = []
+        return self._field
 
     def _flush_buffer(self) -> None:
         if not self._buffer:
@@ -95,7 +137,8 @@ class BeadStore:
 
     @property
     def nbytes(self) -> int:
-        return int(sum(p.nbytes * 2 for _, p in self._levels) + self._buffer_n * 24)
+        field = self._field.nbytes if self._field is not None else 0
+        return int(sum(p.nbytes * 2 for _, p in self._levels) + self._buffer_n * 24 + field)
 
     # -- queries -----------------------------------------------------------------------------
     def nearest(self, centers_mm: np.ndarray, upper_mm: float = np.inf) -> np.ndarray:
@@ -129,17 +172,404 @@ class BeadStore:
         return np.concatenate(qs), np.concatenate(ids), np.concatenate(ps)
 
 
+class BeadField:
+    """A rolling lower bound on the distance from any point to the bead material (spheres).
+
+    Two dense grids over the box of the beads, grown as beads come in (memory: the box, not the
+    program's length), plus the beads' bounding box:
+
+    - *fine* (uint8, one cell per pitch³, lattice centres at integer multiples of the pitch):
+      ``v(c) = max(0, dist(c, chain) - r)`` floored to FINE_REACH_MM/255 steps and clamped at
+      FINE_REACH_MM, where the chain is the polyline through consecutive beads (every bead lies on
+      it, so its distance is no larger than the beads'). Each new chord min-updates the cells within
+      its reach (the *stamp*), so every cell holds min(FINE_REACH_MM, its value): a lower bound at
+      the centre, and ``v(c) - |x - c|`` is one at any x (1-Lipschitz), c the nearest centre.
+    - *coarse* (float32, 4 mm cells): for each cell K, the smallest gap between K and a cell
+      holding a bead centre, minus r, clamped at COARSE_REACH_MM: a lower bound for every point
+      of K. Updated only when a cell gets its first bead (a kernel of precomputed gaps).
+    - the box of all bead centres: ``dist(x, box) - r`` anywhere in space.
+
+    ``lower_bound`` returns the largest of the three. Stamping is numba-compiled on the CPU; the
+    grids are mirrored to the torch device (zero-copy on the CPU), so CPU and CUDA test the same
+    numbers. ``overlay`` stamps beads for the time of a ``with`` block only.
+    """
+
+    def __init__(self, radius_mm: float, pitch_mm: float):
+        self.radius_mm = float(radius_mm)
+        self.pitch_mm = float(pitch_mm)
+        self.step_mm = FINE_REACH_MM / FINE_LEVELS
+        self.link_mm = 0.5 * self.pitch_mm * (1.0 + 1e-9)  # bead spacing (bead_samples)
+        self.coarse_mm = COARSE_CELLS * self.pitch_mm
+        self.fine = np.full((1, 1, 1), FINE_LEVELS, dtype=np.uint8)
+        self.fine_lo = np.zeros(3, dtype=np.int64)
+        self.coarse = np.full((1, 1, 1), COARSE_REACH_MM, dtype=np.float32)
+        self.occupied = np.zeros((1, 1, 1), dtype=bool)
+        self.coarse_lo = np.zeros(3, dtype=np.int64)
+        self.box = np.array([[np.inf] * 3, [-np.inf] * 3])
+        self.count = 0
+        self._last: np.ndarray | None = None  # last bead of the previous add (chains go on)
+        self._tensors: dict = {}
+        self._dirty: list[tuple[str, tuple[slice, ...]]] = []
+        self._kernel = _coarse_kernel(self.coarse_mm, self.radius_mm)
+
+    @property
+    def fine_reach_mm(self) -> float:
+        return self.step_mm * FINE_LEVELS
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.fine.nbytes + self.coarse.nbytes + self.occupied.nbytes)
+
+    # -- stamping ----------------------------------------------------------------------------
+    def add(self, points_mm: np.ndarray) -> None:
+        """Stamp bead centres (m, 3) (consecutive ones within a bead spacing form a chain)."""
+        pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+        if len(pts) == 0:
+            return
+        chain = pts
+        if self._last is not None and np.linalg.norm(pts[0] - self._last) <= self.link_mm:
+            chain = np.concatenate([self._last[None], pts])
+        self._last = pts[-1].copy()
+        self._grow(pts)
+        self.box = np.array([np.minimum(self.box[0], pts.min(axis=0)), np.maximum(self.box[1], pts.max(axis=0))])
+        self.count += len(pts)
+        a, b, dev = self._chords(chain)
+        kern = _stamp_kernels()
+        kern.stamp_chords(self.fine, self.fine_lo, self.pitch_mm, a, b, dev, self.radius_mm, self.step_mm,
+                          FINE_LEVELS, FIELD_SLACK_MM)
+        cells = self._coarse_index(pts)  # repeats are skipped by the kernel (already occupied)
+        kern.stamp_coarse(self.coarse, self.occupied, self.coarse_lo, cells, self._kernel[0], self._kernel[1])
+        if self._tensors and any(k != "cpu" for k in self._tensors):
+            self._mark_dirty(a, b, dev, cells)
+
+    def _chords(self, chain: np.ndarray):
+        link = np.linalg.norm(np.diff(chain, axis=0), axis=1) <= self.link_mm
+        return _stamp_kernels().chords(chain, link, CHORD_TOL_MM, CHORD_MAX_POINTS, CHORD_MAX_MM)
+
+    def _fine_reach(self) -> float:
+        return self.fine_reach_mm + self.radius_mm + CHORD_TOL_MM + self.pitch_mm
+
+    def _coarse_index(self, pts: np.ndarray) -> np.ndarray:
+        return np.floor((pts / self.pitch_mm + 0.5) / COARSE_CELLS).astype(np.int64)
+
+    def _grow(self, pts: np.ndarray) -> None:
+        """Reallocate the grids (content kept) when beads come outside the region they cover."""
+        h = self.pitch_mm
+        reach = self._fine_reach()
+        need_lo = np.floor((pts.min(axis=0) - reach) / h).astype(np.int64) - 1
+        need_hi = np.ceil((pts.max(axis=0) + reach) / h).astype(np.int64) + 2
+        self.fine, self.fine_lo, grown_f = _regrid(self.fine, self.fine_lo, need_lo, need_hi,
+                                                   int(np.ceil(GROW_MM / h)), FINE_LEVELS)
+        pad = int(np.ceil(COARSE_REACH_MM / self.coarse_mm)) + 2
+        k = self._coarse_index(np.array([pts.min(axis=0), pts.max(axis=0)]))
+        grow_c = int(np.ceil(GROW_MM / self.coarse_mm))
+        self.coarse, lo_c, grown_c = _regrid(self.coarse, self.coarse_lo, k[0] - pad, k[1] + pad + 1, grow_c,
+                                             COARSE_REACH_MM)
+        self.occupied, _, _ = _regrid(self.occupied, self.coarse_lo, k[0] - pad, k[1] + pad + 1, grow_c, False)
+        self.coarse_lo = lo_c
+        if grown_f or grown_c:
+            self._tensors = {}
+            self._dirty = []
+
+    def _mark_dirty(self, a, b, dev, cells) -> None:
+        h = self.pitch_mm
+        reach = self._fine_reach()
+        lo = np.maximum(np.floor((np.minimum(a, b).min(axis=0) - reach) / h).astype(np.int64) - self.fine_lo, 0)
+        hi = np.minimum(np.ceil((np.maximum(a, b).max(axis=0) + reach) / h).astype(np.int64) - self.fine_lo + 1,
+                        self.fine.shape)
+        self._dirty.append(("fine", tuple(slice(int(x), int(y)) for x, y in zip(lo, hi))))
+        pad = int(np.ceil(COARSE_REACH_MM / self.coarse_mm)) + 2
+        lo = np.maximum(cells.min(axis=0) - pad - self.coarse_lo, 0)
+        hi = np.minimum(cells.max(axis=0) + pad + 1 - self.coarse_lo, self.coarse.shape)
+        self._dirty.append(("coarse", tuple(slice(int(x), int(y)) for x, y in zip(lo, hi))))
+
+    class _Overlay:
+        def __init__(self, field: "BeadField", points: np.ndarray):
+            self.field, self.points = field, np.asarray(points, dtype=np.float64).reshape(-1, 3)
+
+        def __enter__(self):
+            f, pts = self.field, self.points
+            self.saved = None
+            if len(pts) == 0:
+                return f
+            f._grow(pts)
+            a, b, dev = f._chords(pts)
+            cells = f._coarse_index(pts)
+            h = f.pitch_mm
+            reach = f._fine_reach()
+            lo = np.maximum(np.floor((pts.min(axis=0) - reach) / h).astype(np.int64) - f.fine_lo, 0)
+            hi = np.minimum(np.ceil((pts.max(axis=0) + reach) / h).astype(np.int64) - f.fine_lo + 1, f.fine.shape)
+            fs = tuple(slice(int(x), int(y)) for x, y in zip(lo, hi))
+            pad = int(np.ceil(COARSE_REACH_MM / f.coarse_mm)) + 2
+            lo = np.maximum(cells.min(axis=0) - pad - f.coarse_lo, 0)
+            hi = np.minimum(cells.max(axis=0) + pad + 1 - f.coarse_lo, f.coarse.shape)
+            cs = tuple(slice(int(x), int(y)) for x, y in zip(lo, hi))
+            self.saved = (fs, f.fine[fs].copy(), cs, f.coarse[cs].copy(), f.occupied[cs].copy(), f.box.copy(),
+                          f.count, f._last)
+            f.box = np.array([np.minimum(f.box[0], pts.min(axis=0)), np.maximum(f.box[1], pts.max(axis=0))])
+            f.count += len(pts)
+            kern = _stamp_kernels()
+            kern.stamp_chords(f.fine, f.fine_lo, h, a, b, dev, f.radius_mm, f.step_mm, FINE_LEVELS, FIELD_SLACK_MM)
+            kern.stamp_coarse(f.coarse, f.occupied, f.coarse_lo, cells, f._kernel[0], f._kernel[1])
+            if f._tensors and any(k != "cpu" for k in f._tensors):
+                f._dirty += [("fine", fs), ("coarse", cs)]
+            return f
+
+        def __exit__(self, *exc):
+            if self.saved is None:
+                return False
+            f = self.field
+            fs, fine, cs, coarse, occ, box, count, last = self.saved
+            f.fine[fs], f.coarse[cs], f.occupied[cs] = fine, coarse, occ
+            f.box, f.count, f._last = box, count, last
+            if f._tensors and any(k != "cpu" for k in f._tensors):
+                f._dirty += [("fine", fs), ("coarse", cs)]
+            return False
+
+    def overlay(self, points_mm: np.ndarray) -> "BeadField._Overlay":
+        """``with field.overlay(points):`` the points are stamped inside the block, undone after it
+        (chains only within ``points``; the coarse occupancy and the box come back too)."""
+        return BeadField._Overlay(self, points_mm)
+
+    # -- queries -----------------------------------------------------------------------------
+    def tensors(self, device):
+        """The grids on ``device`` (CPU: views of the numpy arrays; else copies kept in sync)."""
+        import torch
+
+        key = str(device)
+        t = self._tensors.get(key)
+        if t is None:
+            if key == "cpu":
+                fine, coarse = torch.from_numpy(self.fine), torch.from_numpy(self.coarse)
+            else:
+                fine, coarse = torch.as_tensor(self.fine, device=device), torch.as_tensor(self.coarse, device=device)
+            t = self._tensors[key] = {"fine": fine, "coarse": coarse}
+            for name, grid, lo in (("fine", self.fine, self.fine_lo), ("coarse", self.coarse, self.coarse_lo)):
+                t[name + "_lo"] = torch.as_tensor(lo, dtype=torch.int64, device=device)
+                t[name + "_hi"] = torch.as_tensor(lo + np.array(grid.shape) - 1, dtype=torch.int64, device=device)
+        elif key != "cpu" and self._dirty:
+            for name, sl in self._dirty:
+                src = self.fine if name == "fine" else self.coarse
+                t[name][sl] = torch.as_tensor(np.ascontiguousarray(src[sl]), device=device)
+            self._dirty = []
+        if t.get("box_of") is not self.box:  # the box changes with every add / overlay (a new array)
+            t["box"] = torch.as_tensor(self.box, dtype=torch.float64, device=device)
+            t["box_of"] = self.box
+        return t
+
+    def lower_bound(self, points):
+        """Lower bound (mm) on the distance from points (m, 3) float64 tensor to the bead material -> (m,)."""
+        import torch
+
+        if self.count == 0:
+            return torch.full((len(points),), float("inf"), dtype=torch.float64, device=points.device)
+        t = self.tensors(points.device)
+        h = self.pitch_mm
+        idx = torch.round(points / h)
+        diff = points - idx * h
+        off = torch.sqrt(diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1] + diff[:, 2] * diff[:, 2])
+        fine = _gather(t["fine"], t["fine_lo"], t["fine_hi"], idx.to(torch.int64), float(FINE_LEVELS))
+        lb = fine * self.step_mm - off
+        k = torch.floor((points / h + 0.5) / COARSE_CELLS).to(torch.int64)
+        lb = torch.maximum(lb, _gather(t["coarse"], t["coarse_lo"], t["coarse_hi"], k, COARSE_REACH_MM))
+        box = t["box"]
+        gap = torch.clamp(torch.maximum(box[0] - points, points - box[1]), min=0.0)
+        outside = torch.sqrt(gap[:, 0] * gap[:, 0] + gap[:, 1] * gap[:, 1] + gap[:, 2] * gap[:, 2]) - self.radius_mm
+        return torch.maximum(lb, outside)
+
+    def lower_bound_np(self, points: np.ndarray) -> np.ndarray:
+        """The same bound for numpy points (m, 3) -> (m,) float64 (tests, small queries)."""
+        import torch
+
+        return self.lower_bound(torch.as_tensor(np.asarray(points, dtype=np.float64))).numpy()
+
+
+def _gather(grid, lo, hi, idx, default: float):
+    """grid[idx - lo] as float64, ``default`` where idx (m, 3) int64 (global) is outside [lo, hi]."""
+    import torch
+
+    rel = idx - lo
+    clamped = torch.clamp(rel, min=torch.zeros_like(lo), max=hi - lo)
+    inside = (clamped == rel).all(dim=1)
+    shape = grid.shape
+    flat = (clamped[:, 0] * shape[1] + clamped[:, 1]) * shape[2] + clamped[:, 2]
+    values = grid.reshape(-1)[flat].to(torch.float64)
+    return torch.where(inside, values, default)
+
+
+def _regrid(grid: np.ndarray, lo: np.ndarray, need_lo: np.ndarray, need_hi: np.ndarray, grow: int, fill):
+    """A grid covering global indices [need_lo, need_hi) and the old one; content kept.
+    returns (grid, lo, grown)."""
+    hi = lo + np.array(grid.shape)
+    empty = grid.size <= 1 and not np.any(grid != fill)
+    if not empty and (need_lo >= lo).all() and (need_hi <= hi).all():
+        return grid, lo, False
+    if empty:
+        new_lo, new_hi = need_lo - grow, need_hi + grow
+    else:
+        new_lo = np.where(need_lo < lo, np.minimum(need_lo, lo) - grow, lo)
+        new_hi = np.where(need_hi > hi, np.maximum(need_hi, hi) + grow, hi)
+    out = np.full(tuple(int(x) for x in new_hi - new_lo), fill, dtype=grid.dtype)
+    if not empty:
+        o = lo - new_lo
+        out[o[0]:o[0] + grid.shape[0], o[1]:o[1] + grid.shape[1], o[2]:o[2] + grid.shape[2]] = grid
+    return out, new_lo, True
+
+
+def _coarse_kernel(cell_mm: float, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Offsets (p, 3) int64 and values (p,) float32: the gap between two coarse cells that far
+    apart, minus the bead radius (floored at 0, lowered by the slack), where below the reach."""
+    n = int(np.ceil((COARSE_REACH_MM + radius_mm) / cell_mm)) + 1
+    r = np.arange(-n, n + 1)
+    off = np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)
+    gap = np.maximum(np.abs(off) - 1, 0) * cell_mm
+    val = np.sqrt((gap * gap).sum(axis=1)) - radius_mm - FIELD_SLACK_MM
+    keep = val < COARSE_REACH_MM
+    return off[keep].astype(np.int64), np.maximum(val[keep], 0.0).astype(np.float32)
+
+
+def _chords_py(pts, link, tol, max_points, max_len):  # pragma: no cover - compiled
+    """Chords through runs of linked points: (a (k, 3), b (k, 3), deviation (k,)). Every point and
+    every segment between linked points lies within the deviation of its chord; an unlinked point
+    is a chord of length 0."""
+    n = pts.shape[0]
+    a = np.empty((n, 3))
+    b = np.empty((n, 3))
+    dev = np.zeros(n)
+    c = 0
+    s = 0
+    while s < n:
+        e = s
+        best = 0.0
+        while e + 1 < n and link[e] and e + 1 - s <= max_points:
+            q = e + 1
+            d0 = pts[q, 0] - pts[s, 0]
+            d1 = pts[q, 1] - pts[s, 1]
+            d2 = pts[q, 2] - pts[s, 2]
+            length2 = d0 * d0 + d1 * d1 + d2 * d2
+            if length2 > max_len * max_len:
+                break
+            worst = 0.0
+            for m in range(s + 1, q):
+                p0 = pts[m, 0] - pts[s, 0]
+                p1 = pts[m, 1] - pts[s, 1]
+                p2 = pts[m, 2] - pts[s, 2]
+                t = 0.0
+                if length2 > 0.0:
+                    t = (p0 * d0 + p1 * d1 + p2 * d2) / length2
+                    t = min(max(t, 0.0), 1.0)
+                e0 = p0 - t * d0
+                e1 = p1 - t * d1
+                e2 = p2 - t * d2
+                worst = max(worst, np.sqrt(e0 * e0 + e1 * e1 + e2 * e2))
+                if worst > tol:
+                    break
+            if worst > tol:
+                break
+            e = q
+            best = worst
+        a[c] = pts[s]
+        b[c] = pts[e]
+        dev[c] = best
+        c += 1
+        if e == s or not link[e - 1] or e + 1 >= n or not link[e]:
+            s = e + 1
+        else:
+            s = e
+    return a[:c], b[:c], dev[:c]
+
+
+def _stamp_chords_py(grid, lo, h, a, b, dev, radius, step, levels, slack):  # pragma: no cover - compiled
+    """Min-update the fine grid with each chord's distance (see BeadField)."""
+    nx, ny, nz = grid.shape
+    full = step * levels
+    inv_step = 1.0 / step  # u may come out one step high at an exact multiple: covered by the slack
+    for s in range(a.shape[0]):
+        cut = radius + dev[s] + slack
+        reach = full + cut
+        reach2 = reach * reach
+        a0, a1, a2 = a[s, 0], a[s, 1], a[s, 2]
+        d0 = b[s, 0] - a0
+        d1 = b[s, 1] - a1
+        d2 = b[s, 2] - a2
+        length2 = d0 * d0 + d1 * d1 + d2 * d2
+        inv = 1.0 / length2 if length2 > 0.0 else 0.0
+        i0 = max(int(np.floor((min(a0, b[s, 0]) - reach) / h)) - lo[0], 0)
+        i1 = min(int(np.ceil((max(a0, b[s, 0]) + reach) / h)) - lo[0], nx - 1)
+        j0 = max(int(np.floor((min(a1, b[s, 1]) - reach) / h)) - lo[1], 0)
+        j1 = min(int(np.ceil((max(a1, b[s, 1]) + reach) / h)) - lo[1], ny - 1)
+        k0 = max(int(np.floor((min(a2, b[s, 2]) - reach) / h)) - lo[2], 0)
+        k1 = min(int(np.ceil((max(a2, b[s, 2]) + reach) / h)) - lo[2], nz - 1)
+        for i in range(i0, i1 + 1):
+            p0 = (i + lo[0]) * h - a0
+            for j in range(j0, j1 + 1):
+                p1 = (j + lo[1]) * h - a1
+                base = p0 * d0 + p1 * d1
+                for k in range(k0, k1 + 1):
+                    p2 = (k + lo[2]) * h - a2
+                    t = (base + p2 * d2) * inv
+                    t = min(max(t, 0.0), 1.0)
+                    e0 = p0 - t * d0
+                    e1 = p1 - t * d1
+                    e2 = p2 - t * d2
+                    dd = e0 * e0 + e1 * e1 + e2 * e2
+                    if dd < reach2:
+                        d = np.sqrt(dd) - cut
+                        u = 0
+                        if d > 0.0:
+                            u = int(d * inv_step)
+                        if u < grid[i, j, k]:
+                            grid[i, j, k] = u
+
+
+def _stamp_coarse_py(grid, occupied, lo, cells, offsets, values):  # pragma: no cover - compiled
+    """Mark cells (m, 3) (global indices) occupied; min-update the kernel around each new one."""
+    nx, ny, nz = grid.shape
+    for c in range(cells.shape[0]):
+        i = cells[c, 0] - lo[0]
+        j = cells[c, 1] - lo[1]
+        k = cells[c, 2] - lo[2]
+        if occupied[i, j, k]:
+            continue
+        occupied[i, j, k] = True
+        for p in range(offsets.shape[0]):
+            x = i + offsets[p, 0]
+            y = j + offsets[p, 1]
+            z = k + offsets[p, 2]
+            if 0 <= x < nx and 0 <= y < ny and 0 <= z < nz and values[p] < grid[x, y, z]:
+                grid[x, y, z] = values[p]
+
+
+class _Kernels:
+    def __init__(self):
+        try:
+            from numba import njit
+        except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
+            def njit(**_):
+                return lambda f: f
+        self.chords = njit(cache=True)(_chords_py)
+        self.stamp_chords = njit(cache=True)(_stamp_chords_py)
+        self.stamp_coarse = njit(cache=True)(_stamp_coarse_py)
+
+
+_KERNELS: list = []
+
+
+def _stamp_kernels() -> _Kernels:
+    """The stamping loops, numba-compiled on first use (cached on disk)."""
+    if not _KERNELS:
+        _KERNELS.append(_Kernels())
+    return _KERNELS[0]
+
+
 def query_pairs(tree: cKDTree, centers: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """All (query index, point index) pairs within ``radii`` (m,) of ``centers`` (m, 3)."""
     if len(centers) == 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    lists = tree.query_ball_point(centers, radii, return_sorted=False)
-    counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
-    total = int(counts.sum())
-    if total == 0:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    flat = np.fromiter((j for x in lists for j in x), dtype=np.int64, count=total)
-    return np.repeat(np.arange(len(centers)), counts), flat
+    # One C-level pass against a tree of the queries at the largest radius, then each its own.
+    found = cKDTree(centers).sparse_distance_matrix(tree, float(np.max(radii)), output_type="ndarray")
+    keep = found["v"] <= radii[found["i"]]
+    return found["i"][keep].astype(np.int64), found["j"][keep].astype(np.int64)
 
 
 def bead_samples(start_mm: np.ndarray, end_mm: np.ndarray, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:

@@ -239,3 +239,86 @@ def _group(
     g_radii = np.zeros(k)
     np.maximum.at(g_radii, group, reach)
     return group, g_centers, g_radii
+
+
+@dataclass(frozen=True)
+class SphereTree:
+    """A bounding-sphere tree over a set of covering balls (head frame), for breadth-first tests.
+
+    Nodes are numbered level by level, root first; the balls are the leaves (every leaf is at
+    the last level). Node i holds the balls of its subtree inside the sphere (center[i], radius[i]);
+    its children are child_start[i] .. child_start[i] + child_count[i] - 1 (none for a leaf).
+    reach[i] = |center[i]| + radius[i]: no point of the node is farther from the tip (for the
+    sweep margin of a rotation: such a point moves at most reach·θ).
+
+    center_mm : (n, 3) float64; radius_mm, reach_mm : (n,) float64; child_start, child_count :
+    (n,) int64; level_start : (levels + 1,) int64, the first node of each level.
+    """
+
+    center_mm: np.ndarray
+    radius_mm: np.ndarray
+    reach_mm: np.ndarray
+    child_start: np.ndarray
+    child_count: np.ndarray
+    level_start: np.ndarray
+
+    @property
+    def n_balls(self) -> int:
+        return int(self.level_start[-1] - self.level_start[-2])
+
+
+def build_sphere_tree(centers_mm: np.ndarray, radii_mm: np.ndarray, leaf_cell_mm: float) -> SphereTree:
+    """Octree levels over ball centres: cells of leaf_cell_mm·2^k, up to one root; each node's
+    sphere is the tightest about its balls' box centre that holds all of them."""
+    c = np.asarray(centers_mm, dtype=np.float64)
+    r = np.asarray(radii_mm, dtype=np.float64)
+    lo = c.min(axis=0) - 1e-9
+    extent = float((c.max(axis=0) - lo).max())
+    levels = max(1, int(np.ceil(np.log2(max(extent / leaf_cell_mm, 1.0)))) + 1)
+    # member[l] : (n_balls,) node index (within level l) of every ball, level 0 = root
+    keys = []
+    for lev in range(levels):
+        edge = leaf_cell_mm * 2.0 ** (levels - 1 - lev)
+        cell = np.floor((c - lo) / edge).astype(np.int64)
+        keys.append(cell)
+    # Sort the balls by their cells at every level (root first), so each node's balls are contiguous.
+    order = np.lexsort(tuple(k[:, d] for k in reversed(keys) for d in (2, 1, 0)))
+    c, r = c[order], r[order]
+    keys = [k[order] for k in keys]
+    node_of = []  # per level: (n_balls,) node id within the level
+    for k in keys:
+        change = np.ones(len(c), dtype=bool)
+        change[1:] = (k[1:] != k[:-1]).any(axis=1)
+        node_of.append(np.cumsum(change) - 1)
+    node_of[0][:] = 0  # one root, whatever the top cell split says
+    node_of.append(np.arange(len(c)))  # the balls themselves
+    counts = [int(n.max()) + 1 for n in node_of]
+    level_start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    n_total = int(level_start[-1])
+    center = np.zeros((n_total, 3))
+    radius = np.zeros(n_total)
+    child_start = np.zeros(n_total, dtype=np.int64)
+    child_count = np.zeros(n_total, dtype=np.int64)
+    for lev, ids in enumerate(node_of):
+        n = counts[lev]
+        blo = np.full((n, 3), np.inf)
+        bhi = np.full((n, 3), -np.inf)
+        np.minimum.at(blo, ids, c - r[:, None])
+        np.maximum.at(bhi, ids, c + r[:, None])
+        mid = 0.5 * (blo + bhi)
+        rad = np.zeros(n)
+        np.maximum.at(rad, ids, np.linalg.norm(c - mid[ids], axis=1) + r)
+        if lev == len(node_of) - 1:
+            mid, rad = c, r
+        base = level_start[lev]
+        center[base:base + n] = mid
+        radius[base:base + n] = rad + TOLERANCES.cover_slack_mm
+        if lev + 1 < len(node_of):
+            child = node_of[lev + 1]
+            # first child of each node: the child node of its first ball (children are contiguous)
+            first_ball = np.searchsorted(ids, np.arange(n), side="left")
+            last_ball = np.searchsorted(ids, np.arange(n), side="right") - 1
+            child_start[base:base + n] = level_start[lev + 1] + child[first_ball]
+            child_count[base:base + n] = child[last_ball] - child[first_ball] + 1
+    reach = np.linalg.norm(center, axis=1) + radius
+    return SphereTree(center, radius, reach, child_start, child_count, level_start)

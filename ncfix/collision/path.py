@@ -5,7 +5,10 @@ angles, great circle for tool vectors via normalised linear interpolation of uni
 the pose is sampled so that no point of the head moves more than the pitch between samples
 (|ΔC| + ρ·θ, ρ = the head's largest distance from its tip). Sample k is checked with an extra
 margin d_k = |ΔC| + ρ·θ to sample k−1: every pose in between lies within d_k of sample k, so
-the sampled checks cover the continuous sweep. The sweep belongs to the block that ends it.
+the sampled checks cover the continuous sweep. The margin is split in its parts (lin = |ΔC|,
+ang = θ): a head point at distance d from the tip is checked with lin + ang·d (the checker's
+sphere tree knows each node's distance). Runs of samples are certified together first (coarse to
+fine, ``Checker._grouped_undecided``). The sweep belongs to the block that ends it.
 
 Beads of depositing moves are laid from the move's start to its end point, at most half a pitch
 apart; a bead exists from the first sample at or after its place on the move (sequence numbers).
@@ -17,8 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ncfix.collision.checker import DEPOSIT_BATCH, Checker, rotation_angle
+from ncfix.collision.checker import Checker, rotation_angle
 from ncfix.collision.deposit import BeadStore, bead_samples
+from ncfix.kinematics.tool_vector import ToolVector
 
 
 @dataclass
@@ -117,29 +121,30 @@ class PathChecker:
         turn = rotation_angle(prev_R, R)
         first_only = (k == 1) & ~known[row_of]
         step[first_only], turn[first_only] = 0.0, 0.0
-        margin = step + ck.rho_mm * turn
         seq = seq0 + np.arange(total)
+        # Distances between consecutive samples of the array (whatever the moves), for groups.
+        chain_lin = np.zeros(total)
+        chain_ang = np.zeros(total)
+        if total > 1:
+            chain_lin[1:] = np.linalg.norm(C[1:] - C[:-1], axis=1)
+            chain_ang[1:] = rotation_angle(R[:-1], R[1:])
+        cum_lin, cum_ang = np.cumsum(chain_lin), np.cumsum(chain_ang)
 
         pend, pend_seq = self._beads(moves, ws, Ps, Pe, m, first, seq0)
-        part_hit = ck.check_parts(C, R, margin)
+        part_hit = ck.sweep_parts(C, R, step, turn, cum_lin, cum_ang, move_of=row_of)
         dep_hit = np.zeros(total, dtype=bool)
         dep_clear = np.full(total, np.inf)
-        if store.count or len(pend):
-            # Poses in small batches; with commit, before each batch the beads every pose of it
-            # sees go into the store, so only the batch's own beads need the sequence filter.
-            done = 0
-            for a in range(0, total, DEPOSIT_BATCH):
-                b = min(total, a + DEPOSIT_BATCH)
-                lo = int(np.searchsorted(pend_seq, seq[a], side="left")) if commit else 0
-                hi = int(np.searchsorted(pend_seq, seq[b - 1], side="right"))
-                if lo > done:
-                    store.add(pend[done:lo])
-                    done = lo
-                dep_hit[a:b], dep_clear[a:b] = ck.check_deposit(
-                    C[a:b], R[a:b], margin[a:b], seq[a:b], store, pend[lo:hi], pend_seq[lo:hi],
-                    step[a:b], turn[a:b])
-            if commit:
-                store.add(pend[done:])
+        if ck.bead_radius_mm > 0 and (store.count or len(pend)):
+            # With commit the window's beads go into the field for good before the test: every
+            # sample sees all of them there (a superset, conservative); the exact test keeps the
+            # sequence. Without commit they are overlaid for the call.
+            stamped = commit and len(pend) > 0
+            if stamped:
+                store.field(ck.pitch_mm).add(pend)
+            dep_hit, dep_clear = ck.sweep_deposit(C, R, step, turn, cum_lin, cum_ang, seq, store, pend, pend_seq,
+                                                  stamped=stamped, move_of=row_of)
+            if stamped:
+                store._add_exact(pend)
         elif commit:
             store.add(pend)
         ck.stats.poses += total
@@ -149,12 +154,9 @@ class PathChecker:
         sample = np.full(n, -1, dtype=np.int64)
         hit_idx = np.nonzero(any_hit)[0]
         sample[row_of[hit_idx]] = hit_idx  # the last colliding sample of each move (ascending)
-        part_rows = np.zeros((n, part_hit.shape[1]), dtype=bool)
-        np.logical_or.at(part_rows, row_of, part_hit)
-        dep_rows = np.zeros(n, dtype=bool)
-        np.logical_or.at(dep_rows, row_of, dep_hit)
-        dep_clear_rows = np.full(n, np.inf)
-        np.minimum.at(dep_clear_rows, row_of, dep_clear)
+        part_rows = np.logical_or.reduceat(part_hit, first, axis=0) if total else part_hit[:0]
+        dep_rows = np.logical_or.reduceat(dep_hit, first)
+        dep_clear_rows = np.minimum.reduceat(dep_clear, first)
         hits = MoveHits(part_rows, dep_rows, dep_clear_rows, sample, C, R, total)
         return hits, seq0 + total
 
@@ -176,6 +178,9 @@ class PathChecker:
         counts, tb = bead_samples(Ps[di], Pe[di], 0.5 * self.pitch_mm)
         brow = np.repeat(di, counts)
         bw = ws[brow] + tb[:, None] * (moves.w_end[brow] - ws[brow])
-        pend, _, _ = self.forward(self.normalise(bw), moves.tcp[brow])
+        if isinstance(self.kin, ToolVector):  # P is the XYZ words: no rotations to compute
+            pend = bw[:, :3].copy()
+        else:
+            pend, _, _ = self.forward(self.normalise(bw), moves.tcp[brow])
         kb = np.maximum(np.ceil(tb * m[brow] - 1e-9), 1).astype(np.int64)
         return pend, seq0 + first[brow] + kb - 1

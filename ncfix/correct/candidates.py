@@ -1,31 +1,61 @@
-"""The set S of candidate orientations: a spherical cap of directions around each programmed vector."""
+"""The set S of candidate orientations: one fixed grid of directions on the sphere, cut per block.
+
+Every block takes the grid's directions within Θ (--max-tilt) of its programmed vector, plus the
+programmed vector itself (candidate 0). Because the grid is shared, consecutive blocks share their
+candidates: a path can hold an orientation exactly (step 0) or move to a neighbour (a step of about
+the resolution), which a pattern turned onto each block's own vector would not allow.
+The grid is a Fibonacci lattice: near-uniform, deterministic, any size.
+"""
 
 from __future__ import annotations
 
 import math
 
 import numpy as np
+from scipy.spatial import cKDTree
 
-from ncfix.geometry.frames import rotation_from_z
+
+def fibonacci_sphere(count: int) -> np.ndarray:
+    """``count`` near-uniform unit vectors (count, 3) on the sphere (golden-angle spiral)."""
+    i = np.arange(count, dtype=np.float64) + 0.5
+    z = 1.0 - 2.0 * i / count
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    phi = math.pi * (3.0 - math.sqrt(5.0)) * i
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
-def cap_pattern(max_tilt_deg: float, resolution_deg: float) -> np.ndarray:
-    """Unit directions (K, 3) around +Z: rings every ``resolution_deg`` up to ``max_tilt_deg``,
-    each ring with points about ``resolution_deg`` apart. Row 0 is +Z itself.
+def chord(angle_deg: float | np.ndarray) -> float | np.ndarray:
+    """Straight-line distance between unit vectors ``angle_deg`` apart."""
+    return 2.0 * np.sin(np.radians(angle_deg) / 2.0)
+
+
+class SphereGrid:
+    """Directions about ``resolution_deg`` apart (the mean spacing of the lattice)."""
+
+    def __init__(self, resolution_deg: float):
+        self.resolution_deg = float(resolution_deg)
+        count = int(math.ceil(4.0 * math.pi / math.radians(resolution_deg) ** 2))
+        self.points = fibonacci_sphere(count)
+        self.tree = cKDTree(self.points)
+
+    def cap(self, centre: np.ndarray, radius_deg: float) -> np.ndarray:
+        """Grid indices (sorted) within ``radius_deg`` of the unit vector ``centre``."""
+        idx = self.tree.query_ball_point(np.asarray(centre, dtype=np.float64), float(chord(radius_deg)) + 1e-12)
+        return np.sort(np.asarray(idx, dtype=np.int64))
+
+
+def level_candidates(grid: SphereGrid, programmed: np.ndarray, max_tilt_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per level, the programmed vector (candidate 0) and the grid's directions within Θ of it.
+
+    programmed : (L, 3) unit vectors. Returns candidates (L, K, 3) and valid (L, K) bool; rows
+    are padded with the programmed vector (not valid) up to the largest K.
     """
-    rings = int(math.floor(max_tilt_deg / resolution_deg + 1e-9))
-    out = [np.array([0.0, 0.0, 1.0])]
-    for k in range(1, rings + 1):
-        tilt = math.radians(k * resolution_deg)
-        count = max(6, int(math.ceil(2 * math.pi * math.sin(tilt) / math.radians(resolution_deg))))
-        phase = 0.5 * (k % 2) * 2 * math.pi / count  # stagger rings
-        azimuth = phase + 2 * math.pi * np.arange(count) / count
-        out.append(np.stack([math.sin(tilt) * np.cos(azimuth), math.sin(tilt) * np.sin(azimuth),
-                             np.full(count, math.cos(tilt))], axis=1))
-    return np.vstack([np.atleast_2d(o) for o in out])
-
-
-def candidates_around(programmed: np.ndarray, pattern: np.ndarray) -> np.ndarray:
-    """The cap pattern turned onto each programmed vector: (m, 3) → (m, K, 3); [:, 0] is programmed."""
-    rot = np.asarray(rotation_from_z(np.asarray(programmed, dtype=np.float64).reshape(-1, 3))).reshape(-1, 3, 3)
-    return np.einsum("mij,kj->mki", rot, pattern)
+    caps = [grid.cap(p, max_tilt_deg) for p in programmed]
+    k = 1 + max((len(c) for c in caps), default=0)
+    cands = np.repeat(programmed[:, None, :], k, axis=1).copy()
+    valid = np.zeros((len(programmed), k), dtype=bool)
+    valid[:, 0] = True
+    for level, cap in enumerate(caps):
+        cands[level, 1:1 + len(cap)] = grid.points[cap]
+        valid[level, 1:1 + len(cap)] = True
+    return cands, valid

@@ -1,11 +1,15 @@
 """Orientation graph + shortest path (seed steps 1–3, after Nishat et al.), as a layered dynamic program.
 
 Levels are consecutive blocks of a collision episode with ramps before and after; vertices are the
-free candidate orientations of each block; an edge joins consecutive levels where the angle between
-the two orientations is at most θ (--max-step); its weight is that angle plus a penalty on the
-deviation of the target from the programmed orientation (as Fang et al. and Plakhotnik et al. do).
-Both end levels are anchored to the programmed orientation. On a layered DAG, Dijkstra's result
-equals the level-by-level minimum computed here, all candidates of a level at once.
+candidate orientations of each block; an edge joins consecutive levels where the angle between
+the two orientations is at most the step limit (θ, --max-step); its weight is that angle plus a
+penalty on the deviation of the target from the programmed orientation (as Fang et al. and
+Plakhotnik et al. do). Both end levels are anchored to candidate 0. On a layered DAG, Dijkstra's
+result equals the level-by-level minimum computed here, all candidates of a level at once.
+
+The edges are found once (``LayeredGraph``); a search then takes a mask of the vertices allowed
+(free, or not yet tested), so a lazy search (solve, test the vertices of the path, search again)
+costs one vectorised pass over the edges per round.
 """
 
 from __future__ import annotations
@@ -16,46 +20,83 @@ from scipy.spatial import cKDTree
 # Weight of the deviation from the programmed orientation against the angular variation. Small:
 # the path stays close to what the CAM system programmed, and smoothness still dominates.
 DEVIATION_WEIGHT = 0.2
+# Edges kept per vertex: the nearest candidates of the level before within the step limit. Where
+# the limit is θ (1-2°) this is every neighbour; only where the program itself turns by tens of
+# degrees between two blocks are farther neighbours dropped (fewer choices, never a wrong edge).
+NEIGHBOURS = 48
 
 
-def cheapest_path(candidates: np.ndarray, free: np.ndarray, programmed: np.ndarray, max_step_deg: float,
-                  deviation_weight: float = DEVIATION_WEIGHT, neighbours: int = 48) -> np.ndarray | None:
-    """The cheapest sequence of free candidates from the first level's programmed orientation to the last's.
+class LayeredGraph:
+    """The edges between consecutive levels of candidate orientations.
 
-    candidates : (L, K, 3) unit vectors per level; free : (L, K) bool; programmed : (L, 3).
-    Returns the chosen index per level (L,) int, or None when no path keeps every step ≤ θ.
-    Levels 0 and L-1 are anchored: only candidate 0 (the programmed orientation) is allowed there.
-    Edges are found with a k-d tree (the ``neighbours`` nearest within θ), so a level costs
-    O(K·neighbours), not O(K²).
+    candidates : (L, K, 3) unit vectors per level; valid : (L, K) bool (padding is not valid);
+    programmed : (L, 3); max_step_deg : θ, or (L,) where entry l bounds the step into level l.
     """
-    levels, k = free.shape
-    allowed = free.copy()
-    allowed[0, 1:] = False
-    allowed[-1, 1:] = False
-    chord = 2.0 * np.sin(np.radians(max_step_deg) / 2.0) * (1.0 + 1e-12)
-    deviation = np.degrees(np.arccos(np.clip(np.einsum("lkj,lj->lk", candidates, programmed), -1.0, 1.0)))
-    cost = np.where(allowed[0], 0.0, np.inf)
-    back = np.zeros((levels, k), dtype=np.int64)
-    width = min(k, neighbours)
-    for level in range(1, levels):
-        source = np.flatnonzero(np.isfinite(cost))
-        if len(source) == 0:
-            return None
-        tree = cKDTree(candidates[level - 1][source])
-        dist, idx = tree.query(candidates[level], k=min(width, len(source)), distance_upper_bound=chord)
-        dist, idx = dist.reshape(k, -1), idx.reshape(k, -1)
-        found = np.isfinite(dist)
-        prev = source[np.where(found, idx, 0)]
-        step = np.degrees(2.0 * np.arcsin(np.clip(dist / 2.0, 0.0, 1.0)))
-        total = np.where(found, cost[prev] + step, np.inf)
-        pick = np.argmin(total, axis=1)
+
+    def __init__(self, candidates: np.ndarray, valid: np.ndarray, programmed: np.ndarray,
+                 max_step_deg: float | np.ndarray, deviation_weight: float = DEVIATION_WEIGHT,
+                 neighbours: int = NEIGHBOURS):
+        self.candidates = np.asarray(candidates, dtype=np.float64)
+        levels, k = valid.shape
+        self.valid = valid.copy()
+        limit = np.broadcast_to(np.asarray(max_step_deg, dtype=np.float64), (levels,))
+        chords = 2.0 * np.sin(np.radians(np.minimum(limit, 180.0)) / 2.0) * (1.0 + 1e-12)
+        self.deviation = np.degrees(np.arccos(np.clip(
+            np.einsum("lkj,lj->lk", self.candidates, programmed), -1.0, 1.0)))
+        self.deviation_weight = float(deviation_weight)
+        # Per level l >= 1: for each vertex, up to ``neighbours`` sources at level l-1 and the angle.
+        self.source: list[np.ndarray] = [np.zeros((k, 0), dtype=np.int64)]
+        self.weight: list[np.ndarray] = [np.zeros((k, 0))]
+        for level in range(1, levels):
+            src = np.flatnonzero(self.valid[level - 1])
+            width = min(neighbours, len(src))
+            if width == 0:
+                self.source.append(np.zeros((k, 0), dtype=np.int64))
+                self.weight.append(np.zeros((k, 0)))
+                continue
+            tree = cKDTree(self.candidates[level - 1][src])
+            dist, idx = tree.query(self.candidates[level], k=width, distance_upper_bound=chords[level])
+            dist, idx = dist.reshape(k, width), idx.reshape(k, width)
+            found = np.isfinite(dist) & self.valid[level][:, None]
+            step = np.degrees(2.0 * np.arcsin(np.clip(np.where(found, dist, 0.0) / 2.0, 0.0, 1.0)))
+            self.source.append(np.where(found, src[np.where(found, idx, 0)], -1))
+            self.weight.append(np.where(found, step, np.inf))
+
+    def cheapest(self, allowed: np.ndarray) -> np.ndarray | None:
+        """The cheapest sequence of allowed vertices from level 0's candidate 0 to the last level's.
+
+        allowed : (L, K) bool. Returns the chosen index per level (L,) int, or None when no path
+        of allowed vertices keeps every step within its limit.
+        """
+        levels, k = allowed.shape
+        ok = allowed & self.valid
+        ok[0, 1:] = False
+        ok[-1, 1:] = False
+        cost = np.where(ok[0], 0.0, np.inf)
+        back = np.zeros((levels, k), dtype=np.int64)
         rows = np.arange(k)
-        cost = total[rows, pick] + deviation_weight * deviation[level]
-        cost = np.where(allowed[level], cost, np.inf)
-        back[level] = prev[rows, pick]
-    if not np.isfinite(cost[0]):
-        return None
-    path = np.zeros(levels, dtype=np.int64)
-    for level in range(levels - 1, 0, -1):
-        path[level - 1] = back[level, path[level]]
-    return path
+        for level in range(1, levels):
+            src = self.source[level]
+            if src.shape[1] == 0:
+                return None
+            total = np.where(src >= 0, cost[np.maximum(src, 0)] + self.weight[level], np.inf)
+            pick = np.argmin(total, axis=1)
+            best = total[rows, pick]
+            cost = np.where(ok[level], best + self.deviation_weight * self.deviation[level], np.inf)
+            back[level] = src[rows, pick]
+            if not np.isfinite(cost).any():
+                return None
+        if not np.isfinite(cost[0]):
+            return None
+        path = np.zeros(levels, dtype=np.int64)
+        for level in range(levels - 1, 0, -1):
+            path[level - 1] = back[level, path[level]]
+        return path
+
+
+def cheapest_path(candidates: np.ndarray, free: np.ndarray, programmed: np.ndarray,
+                  max_step_deg: float | np.ndarray, deviation_weight: float = DEVIATION_WEIGHT,
+                  neighbours: int = NEIGHBOURS) -> np.ndarray | None:
+    """One search on the free vertices (``LayeredGraph`` built on them); None when no path exists."""
+    graph = LayeredGraph(candidates, free, programmed, max_step_deg, deviation_weight, neighbours)
+    return graph.cheapest(free)

@@ -1,0 +1,358 @@
+"""The seed's EPA correction: tilt the head about its tip along the GJK/EPA extraction vector.
+
+Method (seed, "GJK Algorithm", "EPA Algorithm"):
+
+1. Each part is cut into convex pieces by CoACD (``decompose``); the head is replaced by its
+   convex hull (the seed's head "closely mirrors its convex hull").
+2. At a pose, only the pieces whose bounding box meets the head's world bounding box are tested
+   ("GJK with bounding box"). For each, coal's GJK says whether the hulls overlap and its EPA gives
+   the penetration depth d_i and the direction V_i (length d_i) that moves the head out.
+   Deposited beads above the tip allowance are spheres, tested the same way against the head's
+   hull clipped at the tip allowance plane (the bottom of the head is not checked against beads).
+3. The extraction vector is E = Σ w_i V_i with w_i = |V_i| / Σ|V_k|.
+4. A translation is not allowed while printing, so the tool vector N is rotated about the tip C,
+   toward the part of E perpendicular to N (that moves the head along E), in small steps, until
+   the caller's checker says the pose is free. Variant "fixed" keeps the first E; variant "lami"
+   recomputes E at every rotated pose and takes the resultant of the previous and the new
+   direction (Lami's theorem), each weighted by its depth, so the path bends around an obstacle.
+   Where the hull model gives no direction although the checker rejects N0 (E zero, or parallel
+   to N), a ring of azimuths is tried at growing tilts instead.
+
+Approximate by design: convex hulls cover more than the head and (roughly) the parts, EPA
+depths of overlapping pieces do not add up to a global depth, and the walk is greedy, so the tilt
+found is small but not the smallest, and a free orientation may be missed. The hull model only
+steers; every orientation returned was accepted by the caller's conservative ``is_free``, so
+the answer is as safe as that checker.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from itertools import islice
+from pathlib import Path
+
+import coal
+import numpy as np
+import trimesh
+
+from ncfix.correct.decompose import decompose
+from ncfix.geometry.frames import angle_between_deg, axis_rotation
+
+RotationOf = Callable[[np.ndarray], np.ndarray]
+IsFree = Callable[[np.ndarray], np.ndarray]
+
+VARIANTS = ("fixed", "lami")
+# Orientations handed to ``is_free`` per call: the walk's next steps, or one fallback ring.
+_BATCH = 8
+# Fallback ring: azimuths tried at each tilt when the hull model gives no usable direction.
+_RING_AZIMUTHS = 8
+# The "lami" path may bend back toward N0; it stops after this many times max_tilt / step.
+_LAMI_STEP_FACTOR = 4
+# Directions shorter than this (mm) are "none": no penetration, or E parallel to N.
+_TINY = 1e-12
+
+
+@dataclass
+class Extraction:
+    """The extraction vector of one pose.
+
+    vector : (3,) float64, workpiece frame, mm: moves the head out (zero when nothing penetrates)
+    depth_mm : the largest single penetration depth found (0 when none)
+    bodies : names of the penetrated parts (as given to EpaModel), then "deposit" for beads
+    """
+
+    vector: np.ndarray
+    depth_mm: float
+    bodies: list[str] = field(default_factory=list)
+
+
+@dataclass
+class TiltResult:
+    """The outcome of one tilt search.
+
+    normal : (3,) float64 unit tool vector accepted by ``is_free``, or None when none was found
+        within max_tilt
+    tilt_deg : angle from N0 to ``normal``; when normal is None, the largest tilt tried
+    iterations : orientations tried, up to and including the answer
+    bodies : bodies the hull model found penetrated at N0
+    """
+
+    normal: np.ndarray | None
+    tilt_deg: float
+    iterations: int
+    bodies: list[str]
+
+
+class EpaModel:
+    """Convex-hull model of a head and parts for GJK/EPA extraction vectors and tilts.
+
+    head_mesh : closed trimesh in the head frame (tip at the origin, axis +Z)
+    parts : (name, closed trimesh in workpiece mm) pairs, decomposed with CoACD (cached)
+    threshold, cache_dir : passed to ``decompose``
+    bead_radius_mm : radius of the bead spheres given to ``extraction_vector``/``tilt``
+    tip_allowance_mm : the head below this height (head frame) is not tested against beads
+    """
+
+    def __init__(
+        self,
+        head_mesh: trimesh.Trimesh,
+        parts: list[tuple[str, trimesh.Trimesh]],
+        *,
+        threshold: float = 0.05,
+        cache_dir: str | Path | None = None,
+        bead_radius_mm: float = 1.0,
+        tip_allowance_mm: float = 1.0,
+    ):
+        hull = head_mesh.convex_hull
+        self._head_points = np.asarray(hull.vertices, dtype=np.float64)
+        self._head = _convex(hull)
+        bead_hull = _clip_hull(hull, float(tip_allowance_mm))
+        self._bead_head = _convex(bead_hull)
+        self._bead_lo, self._bead_hi = np.asarray(bead_hull.bounds, dtype=np.float64)
+        self._bead_normals = np.asarray(bead_hull.face_normals, dtype=np.float64)
+        self._bead_offsets = np.einsum("ij,ij->i", self._bead_normals, bead_hull.triangles[:, 0])
+        self.bead_radius_mm = float(bead_radius_mm)
+        self._sphere = coal.Sphere(self.bead_radius_mm) if self.bead_radius_mm > 0 else None
+
+        self._pieces: list[coal.Convex] = []
+        self._piece_names: list[str] = []
+        bounds = []
+        self.decompose_seconds = 0.0
+        self.cached = True
+        for name, mesh in parts:
+            result = decompose(mesh, threshold=threshold, cache_dir=cache_dir)
+            self.decompose_seconds += result.seconds
+            self.cached &= result.cached
+            for piece in result.pieces:
+                self._pieces.append(_convex(piece))
+                self._piece_names.append(name)
+                bounds.append(piece.bounds)
+        self.pieces_count = len(self._pieces)
+        box = np.asarray(bounds, dtype=np.float64).reshape(-1, 2, 3)
+        self._piece_lo, self._piece_hi = box[:, 0], box[:, 1]
+        self._request = coal.CollisionRequest()
+        self._request.enable_contact = True
+        self._request.num_max_contacts = 1
+        self._identity = coal.Transform3s()
+
+    # ---- extraction vector ----------------------------------------------------------------
+
+    def extraction_vector(self, C: np.ndarray, R: np.ndarray, beads_mm: np.ndarray | None = None) -> Extraction:
+        """E at the pose tip ``C`` (3,) workpiece mm, rotation ``R`` (3, 3); beads (m, 3) centres or None."""
+        c = np.asarray(C, dtype=np.float64).reshape(3)
+        r = np.asarray(R, dtype=np.float64).reshape(3, 3)
+        pose = coal.Transform3s(r, c)
+        world = c + self._head_points @ r.T
+        lo, hi = world.min(axis=0), world.max(axis=0)
+        near = np.flatnonzero(((self._piece_lo <= hi) & (self._piece_hi >= lo)).all(axis=1))
+        vectors, bodies = [], []
+        for i in near:
+            v = self._penetration(self._head, pose, self._pieces[i], self._identity)
+            if v is not None:
+                vectors.append(v)
+                if self._piece_names[i] not in bodies:
+                    bodies.append(self._piece_names[i])
+        if beads_mm is not None and self._sphere is not None:
+            hit_bead = False
+            for b in self._beads_near(c, r, beads_mm):
+                v = self._penetration(self._bead_head, pose, self._sphere, coal.Transform3s(np.eye(3), b))
+                if v is not None:
+                    vectors.append(v)
+                    hit_bead = True
+            if hit_bead:
+                bodies.append("deposit")
+        return _combine(vectors, bodies)
+
+    def _penetration(self, head, pose, other, other_pose) -> np.ndarray | None:
+        """The head's exit vector from one convex body (length = EPA depth), or None when apart.
+
+        coal's contact normal points from o1 (the head) to o2 and its penetration_depth is the
+        signed distance (negative when overlapping), so depth * normal moves o1 out of o2.
+        """
+        result = coal.CollisionResult()
+        if not coal.collide(head, pose, other, other_pose, self._request, result):
+            return None
+        contact = result.getContact(0)
+        v = contact.penetration_depth * np.asarray(contact.normal, dtype=np.float64)
+        return v if np.linalg.norm(v) > _TINY else None
+
+    def _beads_near(self, c: np.ndarray, r: np.ndarray, beads_mm: np.ndarray) -> np.ndarray:
+        """Bead centres (k, 3) whose sphere may reach the clipped hull: within every face plane
+        by less than the radius (this includes "above the tip allowance plane minus the radius")."""
+        beads = np.asarray(beads_mm, dtype=np.float64).reshape(-1, 3)
+        local = (beads - c) @ r
+        rad = self.bead_radius_mm
+        boxed = ((local > self._bead_lo - rad) & (local < self._bead_hi + rad)).all(axis=1)
+        signed = local[boxed] @ self._bead_normals.T - self._bead_offsets
+        return beads[boxed][(signed < rad).all(axis=1)]
+
+    # ---- tilt -----------------------------------------------------------------------------
+
+    def tilt(
+        self,
+        C: np.ndarray,
+        N0: np.ndarray,
+        rotation_of: RotationOf,
+        is_free: IsFree,
+        *,
+        max_tilt_deg: float,
+        step_deg: float = 0.5,
+        variant: str = "fixed",
+        beads_mm: np.ndarray | None = None,
+    ) -> TiltResult:
+        """Rotate the tool vector about the tip ``C`` until ``is_free`` accepts it.
+
+        C : (3,) tip, workpiece mm (stays fixed); N0 : (3,) programmed tool vector
+        rotation_of : (n, 3) unit vectors -> (n, 3, 3) rotations (the machine decides the spin)
+        is_free : (n, 3) unit vectors -> (n,) bool, the caller's conservative check at tip C
+        variant : "fixed" (E once) or "lami" (E recomputed and combined at each step)
+        Orientations are tried in order of the walk, ``_BATCH`` per ``is_free`` call. When the
+        hull model finds no penetration at N0, or E is parallel to N0 (no tilt direction), a
+        fallback tries ``_RING_AZIMUTHS`` azimuths at each tilt step and keeps the first free one
+        at the smallest tilt.
+        """
+        if variant not in VARIANTS:
+            raise ValueError(f"unknown tilt variant {variant!r}; known: {', '.join(VARIANTS)}")
+        c = np.asarray(C, dtype=np.float64).reshape(3)
+        n0 = np.asarray(N0, dtype=np.float64).reshape(3)
+        n0 = n0 / np.linalg.norm(n0)
+        if bool(np.asarray(is_free(n0[None]))[0]):
+            return TiltResult(n0, 0.0, 0, [])
+        start = self.extraction_vector(c, _rotation(rotation_of, n0), beads_mm)
+        axis = _tilt_axis(n0, start.vector)
+        angles = _tilt_angles(max_tilt_deg, step_deg)
+        if axis is None:
+            walk = _ring(n0, _rotation(rotation_of, n0), angles)
+        elif variant == "fixed":
+            walk = iter(axis_rotation(axis, np.radians(angles)) @ n0)
+        else:
+            walk = self._lami_walk(c, n0, axis, start, rotation_of, max_tilt_deg, step_deg, beads_mm)
+        normal, tried, widest = _first_free(walk, is_free, n0)
+        tilt_deg = widest if normal is None else float(angle_between_deg(n0, normal))
+        return TiltResult(normal, tilt_deg, tried, start.bodies)
+
+    def _lami_walk(
+        self,
+        c: np.ndarray,
+        n0: np.ndarray,
+        axis: np.ndarray,
+        start: Extraction,
+        rotation_of: RotationOf,
+        max_tilt_deg: float,
+        step_deg: float,
+        beads_mm: np.ndarray | None,
+    ) -> Iterator[np.ndarray]:
+        """Tool vectors along the bending path, until it leaves the max_tilt cone.
+
+        The direction is the resultant of the previous direction, weighted by the previous depth,
+        and the new E (its length is its depth). A pose the hull model finds clear keeps the
+        current direction. The path depends on the hull model only, so it can be generated ahead
+        of the ``is_free`` batches.
+        """
+        step = np.radians(step_deg)
+        direction = start.vector / np.linalg.norm(start.vector)
+        weight = float(np.linalg.norm(start.vector))
+        n = n0
+        for _ in range(_LAMI_STEP_FACTOR * max(1, int(np.ceil(max_tilt_deg / step_deg)))):
+            n = axis_rotation(axis, np.array([step]))[0] @ n
+            if angle_between_deg(n0, n) > max_tilt_deg + 1e-9:
+                return
+            yield n
+            e = self.extraction_vector(c, _rotation(rotation_of, n), beads_mm).vector
+            depth = float(np.linalg.norm(e))
+            if depth > _TINY:
+                resultant = weight * direction + e
+                direction = resultant / np.linalg.norm(resultant)
+                weight = depth
+            turned = _tilt_axis(n, direction)
+            axis = axis if turned is None else turned
+
+
+# ---- helpers ------------------------------------------------------------------------------
+
+
+def _convex(mesh: trimesh.Trimesh) -> coal.Convex:
+    """A coal convex shape from a convex trimesh (its points and triangles)."""
+    points = coal.StdVec_Vec3s()
+    points.extend(list(np.asarray(mesh.vertices, dtype=np.float64)))
+    triangles = coal.StdVec_Triangle()
+    triangles.extend([coal.Triangle(int(a), int(b), int(c)) for a, b, c in mesh.faces])
+    return coal.Convex(points, triangles)
+
+
+def _clip_hull(hull: trimesh.Trimesh, height_mm: float) -> trimesh.Trimesh:
+    """The convex hull cut by the plane z = height_mm, keeping the part above (still convex)."""
+    v = np.asarray(hull.vertices, dtype=np.float64)
+    edges = np.asarray(hull.edges_unique)
+    z0, z1 = v[edges[:, 0], 2] - height_mm, v[edges[:, 1], 2] - height_mm
+    cut = z0 * z1 < 0
+    t = (z0[cut] / (z0[cut] - z1[cut]))[:, None]
+    crossings = v[edges[cut, 0]] + t * (v[edges[cut, 1]] - v[edges[cut, 0]])
+    points = np.vstack([v[v[:, 2] >= height_mm], crossings])
+    if len(points) < 4 or np.ptp(points[:, 2]) <= 0:
+        raise ValueError(f"the tip allowance {height_mm} mm removes the whole head")
+    return trimesh.convex.convex_hull(points)
+
+
+def _combine(vectors: list[np.ndarray], bodies: list[str]) -> Extraction:
+    """E = Σ w_i V_i with w_i = |V_i| / Σ|V_k| (seed, "EPA Algorithm")."""
+    if not vectors:
+        return Extraction(np.zeros(3), 0.0, bodies)
+    v = np.asarray(vectors, dtype=np.float64)
+    lengths = np.linalg.norm(v, axis=1)
+    e = (lengths[:, None] * v).sum(axis=0) / lengths.sum()
+    return Extraction(e, float(lengths.max()), bodies)
+
+
+def _rotation(rotation_of: RotationOf, n: np.ndarray) -> np.ndarray:
+    return np.asarray(rotation_of(n[None]), dtype=np.float64).reshape(3, 3)
+
+
+def _tilt_axis(n: np.ndarray, direction: np.ndarray) -> np.ndarray | None:
+    """Unit axis turning n toward the part of ``direction`` perpendicular to it (None if parallel).
+
+    Rotating n by a small angle about n × d moves n toward d's perpendicular part, and with it
+    every head point above the tip: the head moves along d.
+    """
+    axis = np.cross(n, direction)
+    norm = float(np.linalg.norm(axis))
+    return axis / norm if norm > _TINY * max(1.0, float(np.linalg.norm(direction))) else None
+
+
+def _tilt_angles(max_tilt_deg: float, step_deg: float) -> np.ndarray:
+    """step, 2·step, … up to max_tilt, with max_tilt itself last when it is not a multiple."""
+    if step_deg <= 0:
+        raise ValueError(f"step_deg must be > 0, not {step_deg}")
+    angles = step_deg * np.arange(1, int(np.floor(max_tilt_deg / step_deg + 1e-9)) + 1)
+    if max_tilt_deg > 0 and (len(angles) == 0 or angles[-1] < max_tilt_deg - 1e-9):
+        angles = np.append(angles, max_tilt_deg)
+    return angles
+
+
+def _ring(n0: np.ndarray, r0: np.ndarray, angles_deg: np.ndarray) -> Iterator[np.ndarray]:
+    """Fallback: ``_RING_AZIMUTHS`` directions at each tilt, azimuths from the head's own x axis."""
+    azimuth = 2 * np.pi * np.arange(_RING_AZIMUTHS) / _RING_AZIMUTHS
+    around = np.cos(azimuth)[:, None] * r0[:, 0] + np.sin(azimuth)[:, None] * r0[:, 1]
+    for tilt in np.radians(angles_deg):
+        yield from np.cos(tilt) * n0 + np.sin(tilt) * around
+
+
+def _first_free(
+    walk: Iterator[np.ndarray], is_free: IsFree, n0: np.ndarray
+) -> tuple[np.ndarray | None, int, float]:
+    """(first orientation ``is_free`` accepts or None, orientations tried, largest tilt from n0 tried).
+
+    The walk is checked ``_BATCH`` orientations per call; the count stops at the answer.
+    """
+    tried = 0
+    widest = 0.0
+    while batch := list(islice(walk, _BATCH)):
+        normals = np.asarray(batch, dtype=np.float64)
+        free = np.asarray(is_free(normals), dtype=bool).reshape(-1)
+        hit = np.flatnonzero(free)
+        if hit.size:
+            return normals[hit[0]], tried + int(hit[0]) + 1, widest
+        tried += len(normals)
+        widest = max(widest, float(angle_between_deg(n0, normals).max()))
+    return None, tried, widest
