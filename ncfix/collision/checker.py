@@ -39,6 +39,7 @@ from ncfix.collision.deposit import BeadField, BeadStore
 from ncfix.collision.grid import DistanceGrid, build_distance_grid
 from ncfix.collision.head import HeadModel, SphereTree, build_sphere_tree
 from ncfix.geometry.distance import winding_numbers
+from ncfix.geometry.frames import rotation_between
 from ncfix.reference import ExactReference
 
 # Octree cell (mm) of the tree's lowest inner level: a few balls each.
@@ -57,6 +58,10 @@ POSE_BATCH = 8192
 GROUP_LEVELS_MM = (24.0, 6.0, 1.5)
 # A group level that clears under 5% of its groups is skipped for this many calls.
 IDLE_CALLS = 8
+# Cells (mm) grouping beads in the exact deposit test of candidates (a cell cleared clears its beads).
+BEAD_CELL_MM = 4.0
+# Consecutive collinear beads tested as one capsule in the exact deposit test of candidates.
+CAPSULE_BEADS = 24
 # Level of the tree whose failing nodes fetch the candidate beads of an undecided pose (~2 mm).
 CANDIDATE_LEVEL = 5
 
@@ -357,6 +362,140 @@ class Checker:
                                                     zero[idx], zero[idx])
             free[idx[undecided]] = False
         return free
+
+    def poses_free(self, C: np.ndarray, R: np.ndarray, seq: np.ndarray, store: BeadStore,
+                   pending: np.ndarray, pending_seq: np.ndarray) -> np.ndarray:
+        """(n,) bool: end poses (no sweep) free of every part and of the beads each sees (the store,
+        and the pending beads with pending_seq <= its seq). The bounds decide first; an undecided
+        pose goes to the exact test, so the answer is exact (up to the clearance)."""
+        C = np.asarray(C, dtype=np.float64).reshape(-1, 3)
+        R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
+        zero = np.zeros(len(C))
+        free = ~self.sweep_parts(C, R, zero, zero).any(axis=1)
+        if self.bead_radius_mm > 0 and free.any() and (store.count or len(pending)):
+            idx = np.nonzero(free)[0]
+            free[idx] = self.deposit_free(C[idx], R[idx], np.asarray(seq)[idx], store, pending, pending_seq)
+        return free
+
+    def deposit_free(self, C: np.ndarray, R: np.ndarray, seq: np.ndarray, store: BeadStore,
+                     pending: np.ndarray, pending_seq: np.ndarray) -> np.ndarray:
+        """(n,) bool: end poses free of the beads each sees, exactly; made for many orientations
+        about a few tips (candidate batches). Per tip, the beads within the clipped head's reach
+        are gathered once; each (pose, bead) pair is cleared by the head grid's lower bound on
+        the distance to the clipped head, and the pairs it cannot clear go to coal (a sphere of
+        the bead radius against the clipped head, plus containment), nearest first, a pose
+        stopping at its first hit."""
+        import coal
+
+        C = np.asarray(C, dtype=np.float64).reshape(-1, 3)
+        R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
+        seq = np.asarray(seq, dtype=np.int64).reshape(-1)
+        n = len(C)
+        free = np.ones(n, dtype=bool)
+        need = self.bead_radius_mm + self.clearance_mm
+        ref = self.reference
+        reach = float(np.linalg.norm(ref._bead_head.vertices, axis=1).max()) + need
+        ta = self.tip_allowance_mm
+        sphere = coal.Sphere(float(need))
+        trees = store.trees() if store.count else []
+        # Poses of one level share their tip (tip pivot) or stay within h of it (point pivot).
+        keys = np.round(C / 1e-3).astype(np.int64)
+        for key in np.unique(np.column_stack([seq, keys]), axis=0):
+            sel = np.flatnonzero((seq == key[0]) & (keys == key[1:]).all(axis=1))
+            centre = C[sel].mean(axis=0)
+            radius = reach + float(np.linalg.norm(C[sel] - centre, axis=1).max())
+            # Store order is laying order: runs of consecutive beads on one move are collinear.
+            beads = [pts[np.sort(np.asarray(tree.query_ball_point(centre, radius), dtype=np.int64))]
+                     for tree, pts in trees]
+            if len(pending):
+                seen = pending[pending_seq <= key[0]]
+                beads.append(seen[np.linalg.norm(seen - centre, axis=1) <= radius])
+            B = np.concatenate(beads) if beads else np.zeros((0, 3))
+            if len(B) == 0:
+                continue
+            # Two levels: cells of beads (CELL_MM cubes, a centre and a radius each), then beads.
+            cell_key = np.floor(B / BEAD_CELL_MM).astype(np.int64)
+            _, cell_of, counts = np.unique(cell_key, axis=0, return_inverse=True, return_counts=True)
+            cell_of = cell_of.reshape(-1)
+            members = np.argsort(cell_of, kind="stable")
+            starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+            cc = np.zeros((len(counts), 3))
+            np.add.at(cc, cell_of, B)
+            cc /= counts[:, None]
+            cr = np.zeros(len(counts))
+            np.maximum.at(cr, cell_of, np.linalg.norm(B - cc[cell_of], axis=1))
+            for a in range(0, len(sel), 256):
+                part = sel[a:a + 256]
+                lc = np.einsum("pji,pcj->pci", R[part], cc[None, :, :] - C[part, None, :])
+                pose, cell = np.nonzero(lc[:, :, 2] + cr[None, :] + need > ta)  # below the allowance: exempt
+                lb = self.head_grid.lower_bound_np(lc[pose, cell])
+                keep = lb <= need + cr[cell]
+                pose, cell = pose[keep], cell[keep]
+                if len(pose) == 0:
+                    continue
+                # expand the failing cells into their beads
+                cnt = counts[cell]
+                pose = np.repeat(pose, cnt)
+                offs = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+                bead = members[np.repeat(starts[cell], cnt) + offs]
+                lbead = np.einsum("nji,nj->ni", R[part[pose]], B[bead] - C[part[pose]])
+                lb = self.head_grid.lower_bound_np(lbead)
+                near = (lb <= need) & (lbead[:, 2] + need > ta)
+                pose, bead, lbead = pose[near], bead[near], lbead[near]
+                self.stats.exact_bead_tests += len(pose)
+                lb = lb[near]
+                order = np.lexsort((bead, pose))
+                pose, bead, lbead, lb = pose[order], bead[order], lbead[order], lb[order]
+                bounds = np.concatenate([[0], np.nonzero(np.diff(pose))[0] + 1, [len(pose)]])
+                for a0, b0 in zip(bounds[:-1], bounds[1:]):
+                    if self._beads_touch(lbead[a0:b0], bead[a0:b0], lb[a0:b0], sphere, need):
+                        free[part[pose[a0]]] = False
+        return free
+
+    def _beads_touch(self, pts: np.ndarray, ids: np.ndarray, lb: np.ndarray, sphere, need: float) -> bool:
+        """Whether any bead sphere (head-frame centres pts (m, 3) in laying order, store ids (m,),
+        head-grid lower bounds lb (m,), radius ``need``) meets the clipped head, exactly. Runs of
+        consecutive collinear beads are tested first as one capsule (which holds their spheres);
+        only a capsule that touches is split into spheres."""
+        import coal
+
+        ref = self.reference
+        identity, eye = coal.Transform3s(), np.eye(3)
+        runs = np.split(np.arange(len(ids)), np.nonzero(np.diff(ids) != 1)[0] + 1)
+        for run in runs:
+            for a in range(0, len(run), CAPSULE_BEADS):
+                chunk = run[a:a + CAPSULE_BEADS]
+                p = pts[chunk]
+                if len(chunk) > 2 and lb[chunk].min() > 0:
+                    start, end = p[0], p[-1]
+                    axis = end - start
+                    length = float(np.linalg.norm(axis))
+                    off = p - start
+                    if length > 0:
+                        u = axis / length
+                        bent = np.linalg.norm(off - np.outer(off @ u, u), axis=1).max() > 1e-9
+                    else:
+                        bent = np.linalg.norm(off, axis=1).max() > 1e-9
+                    if not bent:
+                        rot = rotation_between(np.array([0.0, 0.0, 1.0]), u).reshape(3, 3) if length > 0 else eye
+                        res = coal.CollisionResult()
+                        capsule = coal.Capsule(float(need), length)
+                        if coal.collide(ref._bead_bvh, identity, capsule,
+                                        coal.Transform3s(rot, 0.5 * (start + end)), ref._creq, res) == 0:
+                            continue  # every centre is outside the head (lb > 0) and no sphere touches
+                for q, bound in zip(p, lb[chunk]):
+                    res = coal.CollisionResult()
+                    if coal.collide(ref._bead_bvh, identity, sphere, coal.Transform3s(eye, q), ref._creq, res) > 0:
+                        return True
+                    if bound <= 0 and self._inside_clipped(q):
+                        return True
+        return False
+
+    def _inside_clipped(self, point: np.ndarray) -> bool:
+        """Whether a head-frame point is inside the clipped head (the head grid rules most out)."""
+        if self.head_grid.lower_bound_np(point[None])[0] > 0:
+            return False
+        return bool(winding_numbers(point[None], self._head_triangles_clipped)[0] > 0.5)
 
     # -- deposit -----------------------------------------------------------------------------
     def check_deposit(self, C: np.ndarray, R: np.ndarray, margin: np.ndarray, seq: np.ndarray,

@@ -31,11 +31,15 @@ class LayeredGraph:
 
     candidates : (L, K, 3) unit vectors per level; valid : (L, K) bool (padding is not valid);
     programmed : (L, 3); max_step_deg : θ, or (L,) where entry l bounds the step into level l.
+    turns : optional (L, 3, 3) rotations; the step into level l is then measured from the
+        previous orientation turned by turns[l] (where the program itself turns, what ncfix adds to
+        the turn); the identity measures the plain angle.
+    penalty : optional (L, K) cost added to a vertex (e.g. for one left colliding).
     """
 
     def __init__(self, candidates: np.ndarray, valid: np.ndarray, programmed: np.ndarray,
                  max_step_deg: float | np.ndarray, deviation_weight: float = DEVIATION_WEIGHT,
-                 neighbours: int = NEIGHBOURS):
+                 neighbours: int = NEIGHBOURS, turns: np.ndarray | None = None):
         self.candidates = np.asarray(candidates, dtype=np.float64)
         levels, k = valid.shape
         self.valid = valid.copy()
@@ -49,24 +53,39 @@ class LayeredGraph:
         self.weight: list[np.ndarray] = [np.zeros((k, 0))]
         for level in range(1, levels):
             src = np.flatnonzero(self.valid[level - 1])
-            width = min(neighbours, len(src))
+            # A level of a few vertices (an anchor) gets every source: the cap must not cut it off.
+            width = len(src) if self.valid[level].sum() <= 4 else min(neighbours, len(src))
             if width == 0:
                 self.source.append(np.zeros((k, 0), dtype=np.int64))
                 self.weight.append(np.zeros((k, 0)))
                 continue
-            tree = cKDTree(self.candidates[level - 1][src])
+            sources = self.candidates[level - 1][src]
+            if turns is not None:
+                sources = sources @ np.asarray(turns[level], dtype=np.float64).T
+            tree = cKDTree(sources)
             dist, idx = tree.query(self.candidates[level], k=width, distance_upper_bound=chords[level])
             dist, idx = dist.reshape(k, width), idx.reshape(k, width)
             found = np.isfinite(dist) & self.valid[level][:, None]
             step = np.degrees(2.0 * np.arcsin(np.clip(np.where(found, dist, 0.0) / 2.0, 0.0, 1.0)))
-            self.source.append(np.where(found, src[np.where(found, idx, 0)], -1))
-            self.weight.append(np.where(found, step, np.inf))
+            source = np.where(found, src[np.where(found, idx, 0)], -1)
+            weight = np.where(found, step, np.inf)
+            # The edge from the previous level's candidate 0 (the programmed orientation) is always
+            # considered, so the programmed path stays a path whatever the neighbour cap drops.
+            zero = self.candidates[level - 1][0]
+            if turns is not None:
+                zero = np.asarray(turns[level], dtype=np.float64) @ zero
+            gap = np.linalg.norm(self.candidates[level] - zero, axis=1)
+            ok0 = (gap <= chords[level]) & self.valid[level] & bool(self.valid[level - 1, 0])
+            step0 = np.degrees(2.0 * np.arcsin(np.clip(gap / 2.0, 0.0, 1.0)))
+            self.source.append(np.column_stack([source, np.where(ok0, 0, -1)]))
+            self.weight.append(np.column_stack([weight, np.where(ok0, step0, np.inf)]))
 
-    def cheapest(self, allowed: np.ndarray) -> np.ndarray | None:
+    def cheapest(self, allowed: np.ndarray, penalty: np.ndarray | None = None) -> np.ndarray | None:
         """The cheapest sequence of allowed vertices from level 0's candidate 0 to the last level's.
 
         allowed : (L, K) bool. Returns the chosen index per level (L,) int, or None when no path
-        of allowed vertices keeps every step within its limit.
+        of allowed vertices keeps every step within its limit. ``penalty`` (L, K): extra cost of
+        a vertex.
         """
         levels, k = allowed.shape
         ok = allowed & self.valid
@@ -82,7 +101,10 @@ class LayeredGraph:
             total = np.where(src >= 0, cost[np.maximum(src, 0)] + self.weight[level], np.inf)
             pick = np.argmin(total, axis=1)
             best = total[rows, pick]
-            cost = np.where(ok[level], best + self.deviation_weight * self.deviation[level], np.inf)
+            cost = best + self.deviation_weight * self.deviation[level]
+            if penalty is not None:
+                cost = cost + penalty[level]
+            cost = np.where(ok[level], cost, np.inf)
             back[level] = src[rows, pick]
             if not np.isfinite(cost).any():
                 return None

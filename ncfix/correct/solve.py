@@ -16,14 +16,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ncfix.correct.candidates import SphereGrid, level_candidates
-from ncfix.correct.graph import cheapest_path
+from ncfix.correct.graph import LayeredGraph
 from ncfix.geometry.frames import angle_between_deg, minimal_rotation
 from ncfix.kinematics.base import Unreachable
 
 # A step may exceed θ only where the program's own step did: by this much at most (degrees).
 STEP_SLACK_DEG = 1e-6
-# Rounds of "solve, re-check with sweeps, drop the candidates that failed" before giving up.
-VERIFY_ROUNDS = 8
+# Rounds of "blend, re-check, keep the strategy's orientations where the blend collided".
+BLEND_ROUNDS = 4
 
 
 @dataclass
@@ -68,14 +68,30 @@ class Episode:
             _, n_after, _ = self.path.forward(r.programmed[self.after_row][None, :], r.tcp[self.after_row:self.after_row + 1])
             chain = np.vstack([chain, n_after])
         own = angle_between_deg(chain[1:], chain[:-1])
-        self.limits = np.maximum(theta, own) + STEP_SLACK_DEG  # (L,) or (L+1,) with the row after
+        # Where the program itself turns by more than θ between two blocks, ncfix keeps that turn
+        # and adds at most θ to it: the step is measured against the previous orientation turned
+        # as the program turns (``turns``), the turn being the change of the programmed vector's
+        # tilt from +Z and of its azimuth about Z (as a tilt/rotary-table machine turns: a
+        # correction "2° more upright" stays so around a corner). Elsewhere the absolute step is
+        # at most θ. Entries: the step into each level, and into the row after when there is one.
+        self.turning = own > theta
+        self.turns = np.tile(np.eye(3), (len(own), 1, 1))
+        turn_deg = np.zeros(len(own))
+        if self.turning.any():
+            frames = _tilt_azimuth_frames(chain)
+            q = np.einsum("nij,nkj->nik", frames[1:], frames[:-1])  # F_l · F_{l-1}^T
+            self.turns[self.turning] = q[self.turning]
+            turn_deg = np.degrees(np.arccos(np.clip((np.trace(q, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+        self.step_limits = np.full(len(own), theta + STEP_SLACK_DEG)  # of the (turned) step
+        self.limits = np.where(self.turning, np.maximum(own, turn_deg) + theta, theta) + STEP_SLACK_DEG  # absolute step
         if not self.start_known:
-            self.limits[0] = 180.0
+            self.limits[0] = self.step_limits[0] = 180.0
         if self.after_row is not None and not r.known_start[self.after_row]:
-            self.limits[-1] = 180.0
+            self.limits[-1] = self.step_limits[-1] = 180.0
         # Beads of the programmed moves, seen from their own level on (candidate tests only; the
         # re-check uses the solution's own beads).
         self.bead_pts, self.bead_seq = self._programmed_beads()
+        self.tests = 0  # candidate poses tested
 
     def _prev_programmed(self) -> np.ndarray:
         r = self.stage.rows
@@ -123,9 +139,10 @@ class Episode:
                     R[sel] = self.kin.forward(words[sel], tcp=flag)[2]
         return words, R, ok
 
-    def free(self, level: np.ndarray, N: np.ndarray) -> np.ndarray:
-        """Conservative: (m,) True where orientation N at that level is reachable and its end pose
-        is free of the parts and of the (programmed) beads laid up to that level."""
+    def free(self, level: np.ndarray, N: np.ndarray, *, exact: bool = True) -> np.ndarray:
+        """(m,) True where orientation N at that level is reachable and its end pose is free of the
+        parts and of the (programmed) beads laid up to that level. ``exact``: undecided poses go to
+        the exact test (the answer is exact); else they count as colliding (fast, conservative)."""
         words, R, ok = self.orient(level, N)
         out = np.zeros(len(level), dtype=bool)
         if not ok.any():
@@ -134,8 +151,9 @@ class Episode:
         lv = np.asarray(level)[idx]
         P = self.path.forward(words[idx], self.tcp[lv])[0]
         C = P + self.h * (N[idx] / np.linalg.norm(N[idx], axis=1, keepdims=True))
-        out[idx] = self.checker.free_poses(C, R[idx], lv.astype(np.int64), self.stage.store,
-                                          self.bead_pts, self.bead_seq)
+        test = self.checker.poses_free if exact else self.checker.free_poses
+        out[idx] = test(C, R[idx], lv.astype(np.int64), self.stage.store, self.bead_pts, self.bead_seq)
+        self.tests += len(idx)
         return out
 
     def words_of(self, N: np.ndarray, programmed: np.ndarray) -> np.ndarray:
@@ -178,95 +196,235 @@ class Episode:
 
 
 class GraphStrategy:
-    """Orientation graph + shortest path (seed steps 1–3, after Nishat et al.).
+    """Orientation graph + shortest path (seed steps 1–3, after Nishat et al.), searched lazily.
 
     Levels: the episode's rows, between the pose before (as written) and the row after (as
-    programmed); vertices: free candidates of the shared sphere grid within Θ of each programmed
-    orientation, and only those that can still reach both ends in steps within the limits (the
-    cone test); candidates are tested lazily, the nearest to the programmed orientation first
-    (tilt bounds of Θ/3, 2Θ/3, Θ); the cheapest path is re-checked with sweeps and its own beads,
-    and the candidates that fail are dropped until it holds.
+    programmed); vertices: candidates of the shared sphere grid within Θ of each programmed
+    orientation that can still reach both ends in steps within the limits (the cone test).
+    Testing every vertex would cost a collision test per candidate and level (thousands per
+    block), so the search is lazy (as in Lazy PRM):
+
+    1. A coarse subset of each level's candidates (about ``COARSE`` resolutions apart) is tested;
+       an untested candidate is *promising* when its nearest tested neighbour is free.
+    2. The cheapest path over free and promising vertices is found; its untested vertices are
+       tested, with the ``BATCH`` untested candidates nearest to each, and the search runs
+       again, until the path is made of tested free vertices only. Then every untested vertex
+       becomes eligible, for a last few rounds, in case the coarse test missed a narrow passage.
+    3. The path is re-checked whole (sweeps, its own beads); a vertex whose move fails there is
+       dropped and the search goes on.
+
+    A colliding block may keep its programmed orientation at a cost ``UNRESOLVED_COST``: the path
+    always exists (the programmed path is within the limits), and it leaves as few blocks
+    colliding as the limits allow; those are reported as unresolved.
     """
 
     name = "graph"
+    BATCH = 24  # untested candidates tested per level on the path, per round
+    COARSE = 4.0  # spacing of the first tests, in resolutions
+    MAX_ROUNDS = 200
+    OPEN_ROUNDS = 3  # rounds with every untested vertex eligible, after the promising ones
+    UNRESOLVED_COST = 1e4  # per block left colliding; far above any tilt or step cost
 
     def __init__(self, options):
         self.max_tilt = float(options.max_tilt)
+        self.max_step = float(options.max_step)
         self.grid = SphereGrid(float(options.resolution))
+        self.coarse = SphereGrid(float(options.resolution) * self.COARSE)
+        self.near_cos = float(np.cos(np.radians(1.5 * float(options.resolution))))
 
     def solve(self, ep: Episode) -> Solution:
         L = len(ep.rows)
         cands, valid = level_candidates(self.grid, ep.N0, self.max_tilt)
-        dev = angle_between_deg(cands, ep.N0[:, None, :])
         valid &= _cone(cands, ep, L)
-        free = np.zeros_like(valid)
-        tested = np.zeros_like(valid)
-        forced = np.zeros(L, dtype=bool)  # levels left as programmed (no free orientation)
-        reasons: dict[int, str] = {}
-        bounds = sorted({min(self.max_tilt, b) for b in (self.max_tilt / 3, 2 * self.max_tilt / 3, self.max_tilt)})
-        for bound in bounds:
-            need = valid & ~tested & (dev <= bound + 1e-9)
-            lv, ci = np.nonzero(need)
-            if len(lv):
-                free[lv, ci] = ep.free(lv, cands[lv, ci])
-                tested |= need
-            found = self._search(ep, cands, free, forced)
-            if found is not None:
-                return Solution(found, [], {})
-        # Nothing holds within Θ: levels with no free candidate at all stay as programmed.
-        blocked = ep.is_colliding & ~(free & valid)[:, 1:].any(axis=1) & ~free[:, 0]
-        for i in np.nonzero(blocked)[0]:
-            forced[i] = True
-            reasons[int(ep.rows[i])] = (f"no free orientation within {self.max_tilt:g}° "
-                                        "(--max-tilt) and the machine's limits")
-        if forced.any():
-            found = self._search(ep, cands, free, forced)
-            if found is not None:
-                return Solution(found, [int(ep.rows[i]) for i in np.nonzero(forced)[0]], reasons)
-        rows = [int(r) for r in ep.colliding]
-        why = (f"no path keeps every step within {ep.stage.options.max_step:g}° (--max-step) "
-               f"and the tilt within {self.max_tilt:g}°")
-        return Solution(ep.programmed.copy(), rows, {r: reasons.get(r, why) for r in rows})
-
-    def _search(self, ep: Episode, cands, free, forced) -> np.ndarray | None:
-        """Cheapest path on the free candidates, re-checked; None when none holds."""
-        L = len(ep.rows)
-        allowed = free.copy()
-        allowed[forced] = False
-        allowed[forced, 0] = True
-        for _ in range(VERIFY_ROUNDS):
-            ext_c, ext_f, ext_p, limits = _with_anchors(ep, cands, allowed)
-            path = cheapest_path(ext_c, ext_f, ext_p, limits)
-            if path is None:
-                return None
+        ext_c, ext_v, ext_p, limits, turns = _with_anchors(ep, cands, valid)
+        graph = LayeredGraph(ext_c, ext_v, ext_p, limits, turns=turns)
+        # state of every candidate: 0 untested, 1 free, 2 colliding
+        state = np.zeros(valid.shape, dtype=np.int8)
+        state[:, 0] = np.where(ep.is_colliding, 2, 1)  # detection tested the programmed moves
+        promising = self._seed(ep, cands, valid, state)
+        rows_l = np.arange(L)
+        open_rounds = 0
+        best = None
+        last_bad = np.zeros(L, dtype=bool)
+        for _round in range(self.MAX_ROUNDS):
+            eligible = (state == 1) | ((state == 0) & (promising | (open_rounds > 0)))
+            allowed = valid & eligible
+            allowed[:, 0] = True  # the programmed orientation: free, or left colliding at a cost
+            penalty = np.zeros((L + 2, valid.shape[1]))
+            penalty[1:L + 1, 0] = np.where(state[:, 0] == 2, self.UNRESOLVED_COST, 0.0)
+            path = graph.cheapest(_anchored(allowed), penalty)
+            if path is None:  # cannot happen while the programmed path is allowed; be safe
+                break
             pick = path[1:L + 1]
-            N = cands[np.arange(L), pick]
+            untested = state[rows_l, pick] == 0
+            if untested.any():
+                self._test_near(ep, cands, valid, state, np.nonzero(untested)[0], pick)
+                continue
+            left = (pick == 0) & (state[:, 0] == 2)  # blocks left colliding
+            N = cands[rows_l, pick]
             words = ep.words_of(N, pick == 0)
-            bad = ep.recheck(words) & ~forced
-            if not bad.any():
-                return words
-            allowed[np.nonzero(bad)[0], pick[bad]] = False
-        return None
+            bad = ep.recheck(words) & ~left
+            # A move that starts at a pose left colliding collides whatever its end: the level
+            # after it keeps its programmed orientation (then it is left colliding only when its
+            # programmed move collides too).
+            after_left = bad & np.concatenate([[False], left[:-1]])
+            if after_left.any():
+                state[np.nonzero(after_left)[0], 1:] = 2
+                continue
+            if bad.any():
+                lv = np.nonzero(bad)[0]
+                state[lv, pick[lv]] = 2
+                # Its neighbours on the grid would sweep the same way: drop them with it.
+                for i in lv[pick[lv] != 0]:
+                    close = cands[i] @ cands[i, pick[i]] >= self.near_cos
+                    state[i, close & (state[i] != 1) | close & (np.arange(len(close)) != 0)] = 2
+                # A level failing again: its move, not only its end, is in the way; drop the
+                # start vertex too.
+                again = lv[last_bad[lv]]
+                again = again[(again > 0) & (pick[np.maximum(again - 1, 0)] != 0)]
+                state[again - 1, pick[again - 1]] = 2
+                last_bad[:] = False
+                last_bad[lv] = True
+                continue
+            if best is None or left.sum() < best[1].sum():
+                best = (words, left)
+            if not left.any() or open_rounds == 1:
+                break
+            # Some blocks are left colliding: let every untested vertex in for a few rounds.
+            open_rounds = self.OPEN_ROUNDS if open_rounds == 0 else open_rounds - 1
+        if best is None:
+            rows = [int(r) for r in ep.colliding]
+            why = (f"no path keeps every step within {self.max_step:g}° (--max-step) "
+                   f"and the tilt within {self.max_tilt:g}°")
+            return Solution(ep.programmed.copy(), rows, {r: why for r in rows})
+        words, left = best
+        words = blend_episode(ep, words, left)
+        rows = [int(ep.rows[i]) for i in np.nonzero(left)[0]]
+        reasons = {}
+        for i in np.nonzero(left)[0]:
+            free_any = (valid[i] & (state[i] == 1)).any()
+            reasons[int(ep.rows[i])] = (
+                f"no free orientation within {self.max_tilt:g}° (--max-tilt) and the machine's limits"
+                if not free_any and not (valid[i] & (state[i] == 0)).any() else
+                f"a free orientation exists, but no path to it keeps every step within {self.max_step:g}° "
+                f"(--max-step) while the blocks around it stay free")
+        return Solution(words, rows, reasons)
+
+    def _seed(self, ep: Episode, cands, valid, state) -> np.ndarray:
+        """Test each level's candidates nearest to the coarse grid; (L, K) bool: untested
+        candidates whose nearest tested candidate at the same level is free."""
+        L, K = valid.shape
+        lv_all, ci_all = [], []
+        for lv in range(L):
+            idx = np.flatnonzero(valid[lv])
+            cap = self.coarse.cap(ep.N0[lv], self.max_tilt)
+            if len(cap) == 0 or len(idx) == 0:
+                continue
+            near = np.argmax(self.coarse.points[cap] @ cands[lv, idx].T, axis=1)
+            take = np.unique(idx[near])
+            take = take[state[lv, take] == 0]
+            lv_all.append(np.full(len(take), lv)), ci_all.append(take)
+        lv, ci = np.concatenate(lv_all), np.concatenate(ci_all)
+        state[lv, ci] = np.where(ep.free(lv, cands[lv, ci]), 1, 2)
+        promising = np.zeros((L, K), dtype=bool)
+        for lv in range(L):
+            tested = np.flatnonzero(valid[lv] & (state[lv] > 0))
+            todo = np.flatnonzero(valid[lv] & (state[lv] == 0))
+            if len(tested) == 0 or len(todo) == 0:
+                continue
+            nearest = tested[np.argmax(cands[lv, todo] @ cands[lv, tested].T, axis=1)]
+            promising[lv, todo] = state[lv, nearest] == 1
+        return promising
+
+    def _test_near(self, ep: Episode, cands, valid, state, levels: np.ndarray, pick: np.ndarray) -> None:
+        """Test, at each level, the untested candidates nearest to the path's vertex there."""
+        lv_all, ci_all = [], []
+        for lv in levels:
+            open_ = np.flatnonzero(valid[lv] & (state[lv] == 0))
+            near = cands[lv, open_] @ cands[lv, pick[lv]]
+            take = open_[np.argsort(-near, kind="stable")[:self.BATCH]]
+            lv_all.append(np.full(len(take), lv)), ci_all.append(take)
+        lv, ci = np.concatenate(lv_all), np.concatenate(ci_all)
+        state[lv, ci] = np.where(ep.free(lv, cands[lv, ci]), 1, 2)
+
+
+def _tilt_azimuth_frames(n: np.ndarray) -> np.ndarray:
+    """(m, 3, 3) frames Rz(φ)·Ry(θ) of unit vectors n (m, 3) by tilt θ from +Z and azimuth φ about
+    Z; at the pole the azimuth of the vector before is kept (it is undefined there)."""
+    tilt = np.arccos(np.clip(n[:, 2], -1.0, 1.0))
+    azimuth = np.arctan2(n[:, 1], n[:, 0])
+    pole = np.hypot(n[:, 0], n[:, 1]) < 1e-9
+    for i in range(len(n)):
+        if pole[i]:
+            azimuth[i] = azimuth[i - 1] if i else 0.0
+    ct, st, cp, sp = np.cos(tilt), np.sin(tilt), np.cos(azimuth), np.sin(azimuth)
+    out = np.zeros((len(n), 3, 3))
+    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = cp * ct, -sp, cp * st
+    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = sp * ct, cp, sp * st
+    out[:, 2, 0], out[:, 2, 1], out[:, 2, 2] = -st, 0.0, ct
+    return out
+
+
+def blend_episode(ep: Episode, words: np.ndarray, left: np.ndarray) -> np.ndarray:
+    """The solution's ramps and runs eased with Bezier curves (``ncfix.correct.blend``): the
+    colliding levels keep the orientation the strategy found for them, unchanged levels stay
+    exactly as programmed, the levels between are replaced by a smooth curve within the step
+    limits. The blended episode is re-checked whole; when it collides, the spans around each
+    failing level go back to the strategy's orientations and it is checked again (up to
+    ``BLEND_ROUNDS`` times, else the strategy's words are kept)."""
+    from ncfix.correct.blend import blend
+
+    L = len(ep.rows)
+    if L < 3:
+        return words
+    N = ep.path.forward(words, ep.tcp)[1]
+    unchanged = np.all(words == ep.programmed, axis=1)
+    keep = ep.is_colliding | unchanged | left
+    keep[0] = keep[-1] = True
+    for _ in range(BLEND_ROUNDS):
+        if keep.all():
+            return words
+        Nb = blend(ep.N0, N, keep, float(ep.stage.options.max_step), limits_deg=ep.limits[:L])
+        same = np.all(Nb == ep.N0, axis=1)
+        out = ep.words_of(Nb, same)
+        out[keep] = words[keep]
+        bad = ep.recheck(out) & ~left
+        if not bad.any():
+            return out
+        keep |= bad
+        keep[np.maximum(np.nonzero(bad)[0] - 1, 0)] = True
+    return words
+
+
+def _anchored(allowed: np.ndarray) -> np.ndarray:
+    """The allowed mask with the two anchor levels (candidate 0 only) around it."""
+    L, K = allowed.shape
+    out = np.zeros((L + 2, K), dtype=bool)
+    out[1:L + 1] = allowed
+    out[0, 0] = out[-1, 0] = True
+    return out
 
 
 def _with_anchors(ep: Episode, cands, allowed):
     """Candidates with an anchor level before and after: the pose before (or, at the program's
-    start, the first programmed orientation with no step limit) and the row after."""
+    start, the first programmed orientation with no step limit) and the row after; with the step
+    limits and turns of the graph's levels (``Episode.turns``)."""
     L, K = allowed.shape
     before = ep.path.forward(ep.before_words[None, :], ep.tcp[:1])[1][0] if ep.before_words is not None else ep.N0[0]
     if ep.after_row is not None:
         r = ep.stage.rows
         after = ep.path.forward(r.programmed[ep.after_row][None, :], r.tcp[ep.after_row:ep.after_row + 1])[1][0]
-        after_limit = ep.limits[-1]
+        after_limit, after_turn = ep.step_limits[-1], ep.turns[-1]
     else:
-        after, after_limit = ep.N0[-1], 180.0
+        after, after_limit, after_turn = ep.N0[-1], 180.0, np.eye(3)
     ext_c = np.concatenate([np.repeat(before[None, None, :], K, axis=1), cands,
                             np.repeat(after[None, None, :], K, axis=1)])
     ext_f = np.concatenate([np.zeros((1, K), dtype=bool), allowed, np.zeros((1, K), dtype=bool)])
     ext_f[0, 0] = ext_f[-1, 0] = True
     ext_p = np.vstack([before, ep.N0, after])
-    limits = np.concatenate([[0.0], ep.limits[:L], [after_limit]])
-    return ext_c, ext_f, ext_p, limits
+    limits = np.concatenate([[0.0], ep.step_limits[:L], [after_limit]])
+    turns = np.concatenate([np.eye(3)[None], ep.turns[:L], after_turn[None]])
+    return ext_c, ext_f, ext_p, limits, turns
 
 
 def _cone(cands: np.ndarray, ep: Episode, L: int) -> np.ndarray:
@@ -289,5 +447,9 @@ def _cone(cands: np.ndarray, ep: Episode, L: int) -> np.ndarray:
 def make_strategy(options):
     if options.strategy == "graph":
         return GraphStrategy(options)
+    if options.strategy == "epa":
+        from ncfix.correct.epa_strategy import EpaStrategy  # loads coal/CoACD only when asked
+
+        return EpaStrategy(options)
     raise NotImplementedError(options.strategy)
 

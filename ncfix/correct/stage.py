@@ -214,6 +214,10 @@ class CorrectStage:
                 self.report.unresolved.append({"line": entry["line"], "bodies": entry["bodies"],
                                                "penetration_mm": entry["penetration_mm"],
                                                "reason": solution.reasons.get(row, "no free orientation found")})
+        for row in sorted(unresolved - set(collided)):  # a move that collides only as rewritten
+            s["unresolved_blocks"] += 1
+            self.report.unresolved.append({"line": int(self.rows.line[row]), "bodies": [], "penetration_mm": None,
+                                           "reason": solution.reasons.get(row, "collides after the blocks around it")})
         self._apply(first, last, solution.words, collided)
 
     def _collision_entries(self, rows: np.ndarray, hits: MoveHits) -> dict[int, dict]:
