@@ -43,7 +43,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--max-tilt", metavar="DEG", help="largest deviation from the programmed orientation (default 30)")
     p.add_argument("--pitch", metavar="MM", help="voxel size (default 0.5)")
     p.add_argument("--clearance", metavar="MM", help="extra safety margin around every body (default 0)")
-    p.add_argument("--strategy", choices=STRATEGIES, help="correction strategy (default graph)")
+    p.add_argument("--strategy", choices=STRATEGIES, help="correction strategy (default epa)")
     p.add_argument("--resolution", metavar="DEG", help="spacing of the orientations the corrector tries (default 1)")
     p.add_argument("--bead-radius", metavar="MM", help="radius of deposited material; 0 turns the deposit model off (default 1)")
     p.add_argument("--tip-allowance", metavar="MM", help="bottom of the head not checked against deposit (default 1)")

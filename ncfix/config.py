@@ -31,7 +31,7 @@ class Options:
     max_tilt: float = 30.0
     pitch: float = 0.5
     clearance: float = 0.0
-    strategy: str = "graph"
+    strategy: str = "epa"
     resolution: float = 1.0
     bead_radius: float = 1.0
     tip_allowance: float = 1.0

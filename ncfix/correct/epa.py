@@ -106,6 +106,8 @@ class EpaModel:
     ):
         hull = head_mesh.convex_hull
         self._head_points = np.asarray(hull.vertices, dtype=np.float64)
+        # No head point is farther from the tip: callers gather the beads within this (plus a radius).
+        self.head_reach_mm = float(np.linalg.norm(self._head_points, axis=1).max())
         self._head = _convex(hull)
         bead_hull = _clip_hull(hull, float(tip_allowance_mm))
         self._bead_head = _convex(bead_hull)
