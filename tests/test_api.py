@@ -89,6 +89,19 @@ def test_process_paths_passes_the_program_through_and_returns_the_report(program
     assert report.verdict == "no --head given: the program was read and passed through unchanged: exit 0"
 
 
+def test_written_files_get_the_modes_a_plain_open_would_give(program, tmp_path):
+    umask = os.umask(0o022)
+    try:
+        out, report = tmp_path / "out.nc", tmp_path / "r.json"
+        ncfix.process(program, out, report=str(report))
+        assert (out.stat().st_mode & 0o777) == 0o644 and (report.stat().st_mode & 0o777) == 0o644
+        out.chmod(0o600)  # an existing file keeps its own mode
+        ncfix.process(program, out)
+        assert out.stat().st_mode & 0o777 == 0o600
+    finally:
+        os.umask(umask)
+
+
 def test_process_streams(program):
     out = io.BytesIO()
     report = ncfix.process(io.BytesIO(PROGRAM), out, machine="ijk")
