@@ -381,10 +381,9 @@ class Checker:
                      pending: np.ndarray, pending_seq: np.ndarray) -> np.ndarray:
         """(n,) bool: end poses free of the beads each sees, exactly; made for many orientations
         about a few tips (candidate batches). Per tip, the beads within the clipped head's reach
-        are gathered once; each (pose, bead) pair is cleared by the head grid's lower bound on
-        the distance to the clipped head, and the pairs it cannot clear go to coal (a sphere of
-        the bead radius against the clipped head, plus containment), nearest first, a pose
-        stopping at its first hit."""
+        are gathered once and grouped in BEAD_CELL_MM cells; the head grid's lower bound on the
+        distance to the clipped head clears whole cells, then single beads, and the beads it
+        cannot clear go to coal (``_beads_touch``), a pose stopping at its first hit."""
         import coal
 
         C = np.asarray(C, dtype=np.float64).reshape(-1, 3)
@@ -413,7 +412,7 @@ class Checker:
             B = np.concatenate(beads) if beads else np.zeros((0, 3))
             if len(B) == 0:
                 continue
-            # Two levels: cells of beads (CELL_MM cubes, a centre and a radius each), then beads.
+            # Two levels: cells of beads (BEAD_CELL_MM cubes, a centre and a radius each), then beads.
             cell_key = np.floor(B / BEAD_CELL_MM).astype(np.int64)
             _, cell_of, counts = np.unique(cell_key, axis=0, return_inverse=True, return_counts=True)
             cell_of = cell_of.reshape(-1)
@@ -487,15 +486,10 @@ class Checker:
                     res = coal.CollisionResult()
                     if coal.collide(ref._bead_bvh, identity, sphere, coal.Transform3s(eye, q), ref._creq, res) > 0:
                         return True
-                    if bound <= 0 and self._inside_clipped(q):
+                    # A centre the head grid cannot place outside may lie inside the clipped head.
+                    if bound <= 0 and winding_numbers(q[None], self._head_triangles_clipped)[0] > 0.5:
                         return True
         return False
-
-    def _inside_clipped(self, point: np.ndarray) -> bool:
-        """Whether a head-frame point is inside the clipped head (the head grid rules most out)."""
-        if self.head_grid.lower_bound_np(point[None])[0] > 0:
-            return False
-        return bool(winding_numbers(point[None], self._head_triangles_clipped)[0] > 0.5)
 
     # -- deposit -----------------------------------------------------------------------------
     def check_deposit(self, C: np.ndarray, R: np.ndarray, margin: np.ndarray, seq: np.ndarray,

@@ -139,10 +139,10 @@ class Episode:
                     R[sel] = self.kin.forward(words[sel], tcp=flag)[2]
         return words, R, ok
 
-    def free(self, level: np.ndarray, N: np.ndarray, *, exact: bool = True) -> np.ndarray:
+    def free(self, level: np.ndarray, N: np.ndarray) -> np.ndarray:
         """(m,) True where orientation N at that level is reachable and its end pose is free of the
-        parts and of the (programmed) beads laid up to that level. ``exact``: undecided poses go to
-        the exact test (the answer is exact); else they count as colliding (fast, conservative)."""
+        parts and of the (programmed) beads laid up to that level: the bounds first, the exact
+        test where they cannot decide (``Checker.poses_free``)."""
         words, R, ok = self.orient(level, N)
         out = np.zeros(len(level), dtype=bool)
         if not ok.any():
@@ -151,8 +151,8 @@ class Episode:
         lv = np.asarray(level)[idx]
         P = self.path.forward(words[idx], self.tcp[lv])[0]
         C = P + self.h * (N[idx] / np.linalg.norm(N[idx], axis=1, keepdims=True))
-        test = self.checker.poses_free if exact else self.checker.free_poses
-        out[idx] = test(C, R[idx], lv.astype(np.int64), self.stage.store, self.bead_pts, self.bead_seq)
+        out[idx] = self.checker.poses_free(C, R[idx], lv.astype(np.int64), self.stage.store, self.bead_pts,
+                                           self.bead_seq)
         self.tests += len(idx)
         return out
 
@@ -277,7 +277,8 @@ class GraphStrategy:
                 # Its neighbours on the grid would sweep the same way: drop them with it.
                 for i in lv[pick[lv] != 0]:
                     close = cands[i] @ cands[i, pick[i]] >= self.near_cos
-                    state[i, close & (state[i] != 1) | close & (np.arange(len(close)) != 0)] = 2
+                    close[0] &= state[i, 0] != 1  # a free programmed orientation stays
+                    state[i, close] = 2
                 # A level failing again: its move, not only its end, is in the way; drop the
                 # start vertex too.
                 again = lv[last_bad[lv]]
