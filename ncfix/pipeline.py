@@ -87,6 +87,8 @@ def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>",
         for chunk in chunks:
             report.count(chunk)
             rendered = writer.render(chunk)
+            for i in writer.restored:  # restates words a change before it altered (Writer doc)
+                report.add_restated(chunk.first_lineno + i)
             report.record_emitted(chunk.first_lineno, chunk.lines, rendered)
             dst.write(rendered)
 

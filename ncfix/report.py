@@ -192,6 +192,14 @@ class Report:
 
     # -- what was written (called by pipeline.run for every emitted chunk) -----------------------
 
+    def add_restated(self, line: int) -> None:
+        """A block rewritten only to restate words that a changed block before it altered (its
+        own move is as programmed): a ``blend`` change without tilt."""
+        self.changes.append({"line": int(line), "before": None, "after": None, "reason": "blend", "tilt_deg": 0.0,
+                             "step_deg": None, "bodies": [], "clearance_before_mm": None, "clearance_after_mm": None,
+                             "note": "restates programmed words that the changed block before it left out"})
+        self.summary["changed_blocks"] += 1
+
     def record_emitted(self, first_lineno: int, lines: list[bytes], rendered: bytes) -> None:
         """Note the changed lines (for the diff) and the text around changed and colliding lines."""
         joined = b"".join(lines)

@@ -184,8 +184,11 @@ def test_process_writes_report_diff_and_html_of_a_fixed_program(program, tmp_pat
     assert data["changes"][0]["before"] == "G1 X30 Y1 Z5" and data["changes"][0]["after"] == "G1 X30 Y1 Z5 I0.100000 J0.000000 K0.994987"
     assert data["unresolved"] == [{"line": 6, "bodies": ["part:mold.stl"], "penetration_mm": 0.5,
                                    "reason": "no free orientation within --max-tilt 30°"}]
+    # line 6 says no vector: it would inherit line 5's tilt, so it restates the programmed one
     assert diff.read_text() == (f"--- {program}\n+++ {out}\n@@ -5,1 +5,1 @@\n-G1 X30 Y1 Z5\n"
-                                "+G1 X30 Y1 Z5 I0.100000 J0.000000 K0.994987\n")
+                                "+G1 X30 Y1 Z5 I0.100000 J0.000000 K0.994987\n"
+                                "@@ -6,1 +6,1 @@\n-G1 X40 Y2 Z5\n+G1 X40 Y2 Z5 I0.000000 J0.000000 K1.000000\n")
+    assert data["changes"][1]["line"] == 6 and data["changes"][1]["reason"] == "blend"
     html = page.read_text()
     assert 'href="#L5"' in html and 'id="L5"' in html and "no free orientation within --max-tilt 30°" in html
 
@@ -206,8 +209,8 @@ def test_cli_diff_applies_with_patch_to_reproduce_the_output(program, tmp_path, 
     assert done.returncode == 0, done.stdout + done.stderr
     assert copy.read_bytes() == out.read_bytes()
     err = capsys.readouterr().err
-    assert "2 blocks changed: 2 tilted off a collision, 0 blended into ramps" in err
-    assert err.rstrip().endswith("all 2 colliding blocks fixed: 2 blocks tilted, 0 ramp blocks blended; "
+    assert "4 blocks changed: 2 tilted off a collision, 2 blended into ramps" in err  # 4 and 6 restate the vector
+    assert err.rstrip().endswith("all 2 colliding blocks fixed: 2 blocks tilted, 2 ramp blocks blended; "
                                  "the output has no detected collision: exit 0")
 
 
@@ -323,7 +326,7 @@ def test_readme_hook_hands_over_a_fixed_program(tmp_path, monkeypatch, corrector
     handed = (tmp_path / "handover.nc").read_bytes()
     assert handed.count(b"K0.994987") == 2 and handed.count(b"\n") == PROGRAM.count(b"\n")
     assert capsys.readouterr().out.strip() == (
-        "post_export: all 2 colliding blocks fixed: 2 blocks tilted, 0 ramp blocks blended; the output has no "
+        "post_export: all 2 colliding blocks fixed: 2 blocks tilted, 2 ramp blocks blended; the output has no "
         f"detected collision: exit 0; handed over as {tmp_path / 'handover.nc'}")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["handover.nc", "part.nc", "part_ncfix.html",
                                                            "part_ncfix.json", "post_export.py"]

@@ -91,6 +91,22 @@ def test_incremental_blocks_after_a_change_stay_on_the_programmed_path():
     assert out == "G90 G1 X0 Y0 Z0 A0 C0\nG91 X1.5\nX0.5\nX1\n"
 
 
+def test_words_a_change_altered_are_restated_on_the_next_block_that_leaves_them_out():
+    text = "G90 G1 X0. Y0. Z0. A0. C0.\nG1 X2. A5. C10.\nG1 Y3.\nG1 X4.\n(end)\nG1 Y5.\n"
+    out = run_with_changes(text, "table-ac", {2: {"X": 2.5, "A": 6.0, "C": 12.0}})
+    # line 3 would inherit X2.5 A6 C12: it restates X, A and C (like a sibling on the line, else in
+    # the profile's format); line 4 states X itself and the rest is as programmed again
+    assert out == "G90 G1 X0. Y0. Z0. A0. C0.\nG1 X2.5 A6. C12.\nG1 Y3. X2. C10.000 A5.000\nG1 X4.\n(end)\nG1 Y5.\n"
+
+
+def test_a_vector_block_without_vector_words_after_a_change_restates_the_vector():
+    text = "G1 X0 Y0 Z0 I0 J0 K1\nG1 X1 I0.1 J0 K0.994987\nG1 X2\nG1 X3 K1\n"
+    out = run_with_changes(text, "ijk", {2: {"I": 0.2, "K": 0.979796}})
+    lines = out.splitlines()
+    assert lines[2] == "G1 X2 I0.100000 J0.000000 K0.994987"  # kept the programmed vector, now said
+    assert lines[3] == "G1 X3 K1"  # says some vector words: the rest are 0 anyway
+
+
 def test_inch_programs_are_written_back_in_inches():
     text = "G20 G90 G1 X1.0000 Y0.0000 Z0.0000 A0 C0\n"
     out = run_with_changes(text, "table-ac", {1: {"X": 2 * 25.4}})

@@ -25,6 +25,13 @@ samples no group could clear are tested one by one. For beads, a group sees ever
 window (a superset of what each of its poses sees: conservative); the exact test keeps the exact
 sequence (a pose sees the beads laid up to its own sample; the beads laid at its own sample get no
 sweep margin).
+
+Refinement. The exact test of a sample includes its sweep margin, so a head passing 0.3 mm from a
+body with 0.5 mm between samples would be a false alarm. A sample that hits only with its margin
+(not at its own pose) is split into ``path.REFINE_PARTS`` finer samples of its stretch, each with
+its own smaller margin, REFINE_LEVELS deep; it collides only when a finer sample does. Each finer
+margin covers its own stretch, so this stays conservative; what remains are false alarms within
+pitch / 16 of contact.
 """
 
 from __future__ import annotations
@@ -62,6 +69,9 @@ IDLE_CALLS = 8
 BEAD_CELL_MM = 4.0
 # Consecutive collinear beads tested as one capsule in the exact deposit test of candidates.
 CAPSULE_BEADS = 24
+# A sample that hits only with its sweep margin is tested again as finer samples, this deep
+# (path.Refiner: REFINE_PARTS samples a level): false alarms of the margin go, hits stay.
+REFINE_LEVELS = 2
 # Level of the tree whose failing nodes fetch the candidate beads of an undecided pose (~2 mm).
 CANDIDATE_LEVEL = 5
 
@@ -172,6 +182,7 @@ class Checker:
                                         tip_allowance_mm=self.tip_allowance_mm)
         self.stats = CheckerStats()
         self._idle_levels: dict = {}
+        self._pending_tree = None  # (pending beads, their cKDTree): built once per batch
         if self.bead_radius_mm > 0:
             clipped = self.reference._bead_head
             # The head above the allowance, in the head frame, at the pitch (filters candidate beads).
@@ -307,13 +318,15 @@ class Checker:
 
     def sweep_parts(self, C: np.ndarray, R: np.ndarray, lin: np.ndarray, ang: np.ndarray,
                     cum_lin: np.ndarray | None = None, cum_ang: np.ndarray | None = None, *,
-                    exact: bool = True, move_of: np.ndarray | None = None) -> np.ndarray:
+                    exact: bool = True, move_of: np.ndarray | None = None, refine=None) -> np.ndarray:
         """(n, n_parts) bool: which parts each pose hits, with sweep margins lin (mm) and ang (rad)
         per pose (a head point at distance d from the tip is checked with lin + ang·d). With
         cum_lin / cum_ang (consecutive samples) groups are certified first. Without ``exact``
         an undecided pose counts as hitting (conservative). With ``move_of`` (n,) (ascending move
         of each sample) only the last hitting sample of each move is found: the exact tests go
-        from a move's last sample backwards and stop at its first hit (earlier ones stay False)."""
+        from a move's last sample backwards and stop at its first hit (earlier ones stay False).
+        With ``refine`` (a ``path.Refiner`` of the samples) a sample that hits only with its sweep
+        margin is tested again as finer samples (module doc)."""
         n = len(C)
         out = np.zeros((n, len(self.parts)), dtype=bool)
         for k, part in enumerate(self.parts):
@@ -332,10 +345,25 @@ class Checker:
             for j in idx:
                 if move_of is not None and move_of[j] == hit_move:
                     continue
-                out[j, k] = self._exact_part(k, C[j], R[j], float(lin[j] + self.rho_mm * ang[j]))
+                margin = float(lin[j] + self.rho_mm * ang[j])
+                out[j, k] = self._exact_part(k, C[j], R[j], margin)
+                if out[j, k] and refine is not None and margin > 0 and not self._exact_part(k, C[j], R[j], 0.0):
+                    out[j, k] = self._refined_part(k, refine, j, REFINE_LEVELS)
                 if out[j, k] and move_of is not None:
                     hit_move = move_of[j]
         return out
+
+    def _refined_part(self, k: int, refine, j: int, levels: int) -> bool:
+        """Whether part k is hit by any finer sample of sample j (``levels`` more levels)."""
+        C, R, lin, ang, _, sub = refine.split(np.array([j]))
+        for i in range(len(C) - 1, -1, -1):
+            margin = float(lin[i] + self.rho_mm * ang[i])
+            hit = self._exact_part(k, C[i], R[i], margin)
+            if hit and margin > 0 and levels > 1:
+                hit = self._refined_part(k, sub, i, levels - 1)
+            if hit:
+                return True
+        return False
 
     def check_parts(self, C: np.ndarray, R: np.ndarray, margin: np.ndarray) -> np.ndarray:
         """(n, n_parts) bool: which parts each pose (tip C (n, 3), rotation R (n, 3, 3)) hits, every
@@ -511,12 +539,13 @@ class Checker:
         return self.sweep_deposit(C, R, step_mm, turn_rad, None, None, seq, store, pending, pending_seq)
 
     def sweep_deposit(self, C, R, lin, ang, cum_lin, cum_ang, seq, store: BeadStore, pending, pending_seq, *,
-                      stamped: bool = False, move_of: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                      stamped: bool = False, move_of: np.ndarray | None = None,
+                      refine=None) -> tuple[np.ndarray, np.ndarray]:
         """Deposit hits (n,) and exact clearances (n,) with sweep margins (lin, ang) per pose and,
         given cum_lin / cum_ang, groups certified first. ``stamped``: the pending beads are in the
         store's field already (else they are overlaid for the call). ``move_of``: as in
         ``sweep_parts`` (the last undecided sample of each move first, the rest of a move only
-        when that one is free)."""
+        when that one is free); ``refine``: as in ``sweep_parts``."""
         n = len(C)
         hit = np.zeros(n, dtype=bool)
         clearance = np.full(n, np.inf)
@@ -543,11 +572,38 @@ class Checker:
                 if len(sel):
                     hit[sel], clearance[sel] = self._exact_deposit(C[sel], R[sel], lin[sel], ang[sel], seq[sel],
                                                                    store, pending, pending_seq, bead_field)
+                    # A pose whose own clearance is below the clearance collides whatever the sweep does.
+                    doubt = hit[sel] & (lin[sel] + ang[sel] > 0) & (clearance[sel] >= self.clearance_mm)
+                    again = sel[doubt] if refine is not None else sel[:0]
+                    if len(again):  # ... and so does one that hits without its sweep margin
+                        zero = np.zeros(len(again))
+                        own, _ = self._exact_deposit(C[again], R[again], zero, zero, seq[again], store, pending,
+                                                     pending_seq, bead_field, clearances=False)
+                        again = again[~own]
+                    if len(again):
+                        hit[again] = self._refined_deposit(refine, again, seq, store, pending, pending_seq,
+                                                           bead_field, REFINE_LEVELS)
+                        clearance[again[~hit[again]]] = np.inf
         return hit, clearance
 
-    def _exact_deposit(self, C, R, lin, ang, seq, store: BeadStore, pending, pending_seq, bead_field: BeadField):
+    def _refined_deposit(self, refine, idx, seq, store, pending, pending_seq, bead_field, levels: int):
+        """Deposit hits of samples idx from their finer samples (``levels`` deep); a finer sample
+        sees the beads its sample sees (a superset of its own: conservative)."""
+        C, R, lin, ang, parent, sub = refine.split(idx)
+        sseq = np.asarray(seq)[idx][parent]
+        h, _ = self._exact_deposit(C, R, lin, ang, sseq, store, pending, pending_seq, bead_field, clearances=False)
+        again = np.nonzero(h & (lin + ang > 0))[0]
+        if levels > 1 and len(again):
+            h[again] = self._refined_deposit(sub, again, sseq, store, pending, pending_seq, bead_field, levels - 1)
+        hit = np.zeros(len(idx), dtype=bool)
+        np.logical_or.at(hit, parent, h)
+        return hit
+
+    def _exact_deposit(self, C, R, lin, ang, seq, store: BeadStore, pending, pending_seq, bead_field: BeadField,
+                       clearances: bool = True):
         """The exact deposit test of undecided poses: candidate beads near the failing ~4 mm nodes,
-        the sequence filter, the allowance plane, the head grid, then the exact signed distance."""
+        the sequence filter, the allowance plane, the head grid, then the exact signed distance
+        (the clearance of each hit pose, at its first hit bead, unless not ``clearances``)."""
         from scipy.spatial import cKDTree
 
         from ncfix.collision.deposit import query_pairs
@@ -581,7 +637,9 @@ class Checker:
             q, gid, p = store.within(centers, query_r)
             poses.append(pose[q]), ids.append(gid), pts.append(p), fresh.append(np.zeros(len(q), dtype=bool))
         if len(pending):
-            q, idx = query_pairs(cKDTree(pending), centers, query_r)
+            if self._pending_tree is None or self._pending_tree[0] is not pending:
+                self._pending_tree = (pending, cKDTree(pending))
+            q, idx = query_pairs(self._pending_tree[1], centers, query_r)
             seen = pending_seq[idx] <= seq[pose[q]]
             poses.append(pose[q][seen]), ids.append(idx[seen] + store.count), pts.append(pending[idx[seen]])
             fresh.append(pending_seq[idx[seen]] == seq[pose[q][seen]])
@@ -638,7 +696,7 @@ class Checker:
             ps = np.fromiter(first_hit.keys(), dtype=np.int64)
             bs = np.fromiter(first_hit.values(), dtype=np.int64)
             hit[ps] = True
-            clearance[ps] = ref.signed_distance_to_clipped_head(local[bs]) - bead_r
+            clearance[ps] = ref.signed_distance_to_clipped_head(local[bs]) - bead_r if clearances else -np.inf
         return hit, clearance
 
 

@@ -572,13 +572,15 @@ def query_pairs(tree: cKDTree, centers: np.ndarray, radii: np.ndarray) -> tuple[
     return found["i"][keep].astype(np.int64), found["j"][keep].astype(np.int64)
 
 
-def bead_samples(start_mm: np.ndarray, end_mm: np.ndarray, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """Counts per move (n,) and the move parameters t in [0, 1] of bead centres on straight moves.
+def bead_samples(start_mm: np.ndarray, end_mm: np.ndarray, spacing_mm: float,
+                 length_mm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Counts per move (n,) and the move parameters t in [0, 1] of bead centres.
 
-    start_mm, end_mm : (n, 3) float64. Each move gets ceil(length / spacing) + 1 centres,
+    start_mm, end_mm : (n, 3) float64; length_mm : (n,) path length (default: the straight
+    distance; an arc's is longer). Each move gets ceil(length / spacing) + 1 centres,
     t = 0 .. 1 inclusive. returns (counts (n,) int64, t (sum counts,) float64).
     """
-    length = np.linalg.norm(np.asarray(end_mm) - np.asarray(start_mm), axis=1)
+    length = np.linalg.norm(np.asarray(end_mm) - np.asarray(start_mm), axis=1) if length_mm is None else length_mm
     m = np.maximum(np.ceil(length / spacing_mm - 1e-9).astype(np.int64), 1)
     counts = m + 1
     offsets = np.repeat(np.cumsum(counts) - counts, counts)

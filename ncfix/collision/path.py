@@ -10,8 +10,15 @@ ang = θ): a head point at distance d from the tip is checked with lin + ang·d 
 sphere tree knows each node's distance). Runs of samples are certified together first (coarse to
 fine, ``Checker._grouped_undecided``). The sweep belongs to the block that ends it.
 
-Beads of depositing moves are laid from the move's start to its end point, at most half a pitch
-apart; a bead exists from the first sample at or after its place on the move (sequence numbers).
+Arcs (G2/G3 whose centre the reader knows, ``Moves.arc``) are followed as the controller moves:
+the point turns about the centre in the arc's plane (radius blended from start to end, a helix
+along the normal), the other words linearly. Samples are at most a quarter turn apart, and a
+sample's linear margin is |ΔP| + h·|ΔN| (no point of an arc of less than half a turn is farther
+from its end than its chord).
+
+Beads of depositing moves are laid from the move's start to its end point (along the arc for
+arcs), at most half a pitch apart; a bead exists from the first sample at or after its place on
+the move (sequence numbers).
 """
 
 from __future__ import annotations
@@ -23,6 +30,9 @@ import numpy as np
 from ncfix.collision.checker import Checker, rotation_angle
 from ncfix.collision.deposit import BeadStore, bead_samples
 from ncfix.kinematics.tool_vector import ToolVector
+
+# A sample hit with its sweep margin is checked again as this many finer samples (REFINE_LEVELS deep).
+REFINE_PARTS = 4
 
 
 @dataclass
@@ -36,6 +46,13 @@ class Moves:
     tcp: np.ndarray  # (n,) bool
     known_start: np.ndarray  # (n,) bool
     deposit: np.ndarray  # (n,) bool
+    arc: np.ndarray | None = None  # (n, 5) Chunk.arc of each move (NaN: a straight move)
+
+    def arc_rows(self) -> np.ndarray:
+        """(n,) bool: moves followed along an arc (the start must be known)."""
+        if self.arc is None:
+            return np.zeros(len(self), dtype=bool)
+        return np.isfinite(self.arc[:, 0]) & self.known_start
 
     def __len__(self) -> int:
         return len(self.w_end)
@@ -70,6 +87,7 @@ class PathChecker:
         self.is_vector = profile.is_vector
         self.standoff_mm = float(standoff_mm)
         self.pitch_mm = float(pitch_mm)
+        self.xyz = [list(self.kin.letters).index(a) for a in "XYZ"]
 
     def normalise(self, words: np.ndarray) -> np.ndarray:
         if self.is_vector:
@@ -106,18 +124,30 @@ class PathChecker:
         Ce, Cs = Pe + h * Ne, Ps + h * Ns
         d_est = np.linalg.norm(Ce - Cs, axis=1) + ck.rho_mm * rotation_angle(Rs, Re)
         m = np.where(known, np.maximum(np.ceil(d_est / self.pitch_mm - 1e-9), 1), 1).astype(np.int64)
+        arcs = moves.arc_rows()
+        if arcs.any():
+            sweep, length = arc_extent(ws[arcs][:, self.xyz], we[arcs][:, self.xyz], moves.arc[arcs])
+            chord = np.linalg.norm(we[arcs][:, self.xyz] - ws[arcs][:, self.xyz], axis=1)
+            longer = d_est[arcs] + np.maximum(length - chord, 0.0)
+            m[arcs] = np.maximum(np.ceil(longer / self.pitch_mm - 1e-9),
+                                 np.ceil(np.abs(sweep) / (0.5 * np.pi) - 1e-9)).astype(np.int64)
         total = int(m.sum())
         first = np.cumsum(m) - m  # index of each move's first sample
         row_of = np.repeat(np.arange(len(m)), m)
         k = np.arange(total) - first[row_of] + 1
         t = k / m[row_of]
-        words = ws[row_of] + t[:, None] * (we[row_of] - ws[row_of])
+        words = self._along(moves, ws, we, row_of, t, arcs)
         P, N, R = self.forward(self.normalise(words), tcp[row_of])
         C = P + h * N
         # Margin: how far any head point may be between this sample and the previous one.
         prev_C = np.where((k == 1)[:, None], Cs[row_of], np.roll(C, 1, axis=0))
         prev_R = np.where((k == 1)[:, None, None], Rs[row_of], np.roll(R, 1, axis=0))
         step = np.linalg.norm(C - prev_C, axis=1)
+        if arcs.any():
+            on_arc = arcs[row_of]
+            prev_P = np.where((k == 1)[:, None], Ps[row_of], np.roll(P, 1, axis=0))
+            prev_N = np.where((k == 1)[:, None], Ns[row_of], np.roll(N, 1, axis=0))
+            step[on_arc] = (np.linalg.norm(P - prev_P, axis=1) + h * np.linalg.norm(N - prev_N, axis=1))[on_arc]
         turn = rotation_angle(prev_R, R)
         first_only = (k == 1) & ~known[row_of]
         step[first_only], turn[first_only] = 0.0, 0.0
@@ -131,7 +161,8 @@ class PathChecker:
         cum_lin, cum_ang = np.cumsum(chain_lin), np.cumsum(chain_ang)
 
         pend, pend_seq = self._beads(moves, ws, Ps, Pe, m, first, seq0)
-        part_hit = ck.sweep_parts(C, R, step, turn, cum_lin, cum_ang, move_of=row_of)
+        refine = Refiner(self, moves, ws, we, arcs, row_of, (k - 1) / m[row_of], t)
+        part_hit = ck.sweep_parts(C, R, step, turn, cum_lin, cum_ang, move_of=row_of, refine=refine)
         dep_hit = np.zeros(total, dtype=bool)
         dep_clear = np.full(total, np.inf)
         if ck.bead_radius_mm > 0 and (store.count or len(pend)):
@@ -142,7 +173,7 @@ class PathChecker:
             if stamped:
                 store.field(ck.pitch_mm).add(pend)
             dep_hit, dep_clear = ck.sweep_deposit(C, R, step, turn, cum_lin, cum_ang, seq, store, pend, pend_seq,
-                                                  stamped=stamped, move_of=row_of)
+                                                  stamped=stamped, move_of=row_of, refine=refine)
             if stamped:
                 store._add_exact(pend)
         elif commit:
@@ -160,6 +191,18 @@ class PathChecker:
         hits = MoveHits(part_rows, dep_rows, dep_clear_rows, sample, C, R, total)
         return hits, seq0 + total
 
+    def _along(self, moves: Moves, ws, we, row, t, arcs) -> np.ndarray:
+        """Words at parameter t (m,) of moves ``row`` (m,): linear, the point along the arc on arcs."""
+        words = ws[row] + t[:, None] * (we[row] - ws[row])
+        on_arc = arcs[row]
+        if on_arc.any():
+            r = row[on_arc]
+            pts = arc_points(ws[r][:, self.xyz], we[r][:, self.xyz], moves.arc[r], t[on_arc])
+            sel = np.nonzero(on_arc)[0]
+            for j, col in enumerate(self.xyz):
+                words[sel, col] = pts[:, j]
+        return words
+
     def bead_points(self, moves: Moves) -> np.ndarray:
         """The beads the moves lay (m, 3), as ``check`` lays them (for committing without a check)."""
         ws = np.where(moves.known_start[:, None], moves.w_start, moves.w_end)
@@ -175,12 +218,93 @@ class PathChecker:
         if not depo.any() or self.checker.bead_radius_mm <= 0:
             return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
         di = np.nonzero(depo)[0]
-        counts, tb = bead_samples(Ps[di], Pe[di], 0.5 * self.pitch_mm)
+        arcs = moves.arc_rows()
+        length = np.linalg.norm(Pe[di] - Ps[di], axis=1)
+        if arcs[di].any():
+            sel = di[arcs[di]]
+            length[arcs[di]] = arc_extent(ws[sel][:, self.xyz], moves.w_end[sel][:, self.xyz], moves.arc[sel])[1]
+        counts, tb = bead_samples(Ps[di], Pe[di], 0.5 * self.pitch_mm, length_mm=length)
         brow = np.repeat(di, counts)
-        bw = ws[brow] + tb[:, None] * (moves.w_end[brow] - ws[brow])
+        bw = self._along(moves, ws, moves.w_end, brow, tb, arcs)
         if isinstance(self.kin, ToolVector):  # P is the XYZ words: no rotations to compute
             pend = bw[:, :3].copy()
         else:
             pend, _, _ = self.forward(self.normalise(bw), moves.tcp[brow])
         kb = np.maximum(np.ceil(tb * m[brow] - 1e-9), 1).astype(np.int64)
         return pend, seq0 + first[brow] + kb - 1
+
+
+class Refiner:
+    """Splits samples into finer ones: a sample stands for its move from parameter t0 to t1, and
+    a hit found with its sweep margin may be a false alarm of that margin. ``split(idx)`` gives
+    REFINE_PARTS samples per sample idx over the same stretch, each with its own (smaller)
+    margins, and a Refiner of them for the next level. The checker calls a sample colliding only
+    when a sub-sample collides (each sub-sample's margin covers its own stretch: conservative)."""
+
+    def __init__(self, path: "PathChecker", moves: Moves, ws, we, arcs, row, t0, t1):
+        self.path, self.moves, self.ws, self.we, self.arcs = path, moves, ws, we, arcs
+        self.row, self.t0, self.t1 = row, t0, t1
+
+    def split(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, "Refiner"]:
+        """Sub-samples of samples idx: C (q, 3), R (q, 3, 3), lin (q,), ang (q,), parent (q,) (index into idx)."""
+        idx = np.asarray(idx, dtype=np.int64)
+        parts = REFINE_PARTS
+        parent = np.repeat(np.arange(len(idx)), parts)
+        frac = np.tile(np.arange(0, parts + 1) / parts, len(idx))
+        rows = np.repeat(self.row[idx], parts + 1)
+        t = np.repeat(self.t0[idx], parts + 1) + frac * np.repeat(self.t1[idx] - self.t0[idx], parts + 1)
+        words = self.path._along(self.moves, self.ws, self.we, rows, t, self.arcs)
+        P, N, R = self.path.forward(self.path.normalise(words), self.moves.tcp[rows])
+        C = P + self.path.standoff_mm * N
+        end = np.ones(len(t), dtype=bool)
+        end[::parts + 1] = False  # the first of each group is the stretch's start, not a sample
+        prev = np.nonzero(end)[0] - 1
+        cur = np.nonzero(end)[0]
+        lin = np.linalg.norm(C[cur] - C[prev], axis=1)
+        on_arc = self.arcs[rows[cur]]
+        if on_arc.any():
+            alt = np.linalg.norm(P[cur] - P[prev], axis=1) + self.path.standoff_mm * np.linalg.norm(N[cur] - N[prev], axis=1)
+            lin[on_arc] = alt[on_arc]
+        ang = rotation_angle(R[prev], R[cur])
+        sub = Refiner(self.path, self.moves, self.ws, self.we, self.arcs, rows[cur], t[prev], t[cur])
+        return C[cur], R[cur], lin, ang, parent, sub
+
+
+def _arc_angles(start: np.ndarray, end: np.ndarray, arc: np.ndarray):
+    """Per arc: plane axes (a, b), normal axis, start angle, signed sweep (rad), start and end radius."""
+    axis = arc[:, 3].astype(np.int64)
+    a = np.choose(axis, [1, 2, 0])
+    b = np.choose(axis, [2, 0, 1])
+    n = np.arange(len(arc))
+    c = arc[:, :3]
+    sa, sb = start[n, a] - c[n, a], start[n, b] - c[n, b]
+    ea, eb = end[n, a] - c[n, a], end[n, b] - c[n, b]
+    a0, a1 = np.arctan2(sb, sa), np.arctan2(eb, ea)
+    ccw = arc[:, 4] > 0
+    sweep = np.where(ccw, np.mod(a1 - a0, 2 * np.pi), -np.mod(a0 - a1, 2 * np.pi))
+    # start == end: a full circle (a controller turns once round)
+    full = np.abs(sweep) < 1e-9
+    sweep = np.where(full, np.where(ccw, 2 * np.pi, -2 * np.pi), sweep)
+    return a, b, axis, a0, sweep, np.hypot(sa, sb), np.hypot(ea, eb)
+
+
+def arc_extent(start: np.ndarray, end: np.ndarray, arc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Signed sweep (rad) and a length at least the path's (mm) of arcs (start, end (n, 3) mm)."""
+    _, _, axis, _, sweep, r0, r1 = _arc_angles(start, end, arc)
+    n = np.arange(len(arc))
+    rise = np.abs(end[n, axis] - start[n, axis])
+    return sweep, np.abs(sweep) * np.maximum(r0, r1) + np.abs(r1 - r0) + rise
+
+
+def arc_points(start: np.ndarray, end: np.ndarray, arc: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Points (m, 3) at parameter t (m,) of arcs (one row each of start, end, arc): the angle and
+    the radius go linearly from start to end, the normal coordinate too (a helix)."""
+    a, b, axis, a0, sweep, r0, r1 = _arc_angles(start, end, arc)
+    n = np.arange(len(arc))
+    angle = a0 + t * sweep
+    radius = r0 + t * (r1 - r0)
+    out = np.empty_like(start)
+    out[n, a] = arc[:, :3][n, a] + radius * np.cos(angle)
+    out[n, b] = arc[:, :3][n, b] + radius * np.sin(angle)
+    out[n, axis] = start[n, axis] + t * (end[n, axis] - start[n, axis])
+    return out

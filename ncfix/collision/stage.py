@@ -50,12 +50,15 @@ class MotionRows:
         tcp_start[1:] = tcp[:-1]
         tcp_start[0] = self.prev_tcp
         self.prev_words, self.prev_tcp = w_end[-1].copy(), bool(tcp[-1])
-        self.arcs += int((chunk.motion[rows] >= 2).sum())
+        arc = chunk.arc[rows].copy()
+        chord = (chunk.motion[rows] >= 2) & np.isnan(arc[:, 0])
+        arc[chord, 3] = -1.0  # an arc ncfix cannot follow: checked along its chord, never re-oriented
+        self.arcs += int(chord.sum())
         known_end = np.isfinite(w_end).all(axis=1)
         known_start = np.isfinite(w_start).all(axis=1) & (tcp_start == tcp) & known_end
         self.unchecked += int((~known_end).sum())
         keep = known_end
-        moves = Moves(w_start[keep], w_end[keep], tcp[keep], known_start[keep], dep[rows][keep])
+        moves = Moves(w_start[keep], w_end[keep], tcp[keep], known_start[keep], dep[rows][keep], arc[keep])
         return rows[keep], moves
 
     def warnings(self) -> list[str]:
@@ -64,7 +67,8 @@ class MotionRows:
             out.append(f"{self.unchecked} motion blocks were not checked: an axis was unknown there "
                        "(after G28/G53 or an expression) or TCP switched on the block")
         if self.arcs:
-            out.append(f"{self.arcs} G2/G3 arc blocks were checked along their chord, not along the arc")
+            out.append(f"{self.arcs} G2/G3 arc blocks were checked along their chord, not along the arc: ncfix "
+                       "follows arcs given by I J K (or G90.1 centres), R / CR= and Heidenhain CC + C / CR")
         return out
 
 

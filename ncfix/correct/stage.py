@@ -44,12 +44,13 @@ class Rows:
     tcp: np.ndarray  # (n,) bool
     known_start: np.ndarray  # (n,) bool: the sweep from the previous row is checkable
     deposit: np.ndarray  # (n,) bool
+    arc: np.ndarray  # (n, 5) Chunk.arc (NaN on straight moves)
 
     @classmethod
     def empty(cls, k: int) -> "Rows":
         z = np.zeros(0, dtype=np.int64)
         b = np.zeros(0, dtype=bool)
-        return cls(z, z, z, np.zeros((0, k)), np.zeros((0, k)), b, b, b)
+        return cls(z, z, z, np.zeros((0, k)), np.zeros((0, k)), b, b, b, np.zeros((0, 5)))
 
     def __len__(self) -> int:
         return len(self.row)
@@ -97,7 +98,7 @@ class CorrectStage:
             # A row whose start follows an unchecked row has no known start (MotionRows).
             new = Rows(np.full(len(kept), serial, dtype=np.int64), kept.astype(np.int64),
                        chunk.first_lineno + kept.astype(np.int64), moves.w_end.copy(), moves.w_end.copy(),
-                       moves.tcp, moves.known_start, moves.deposit)
+                       moves.tcp, moves.known_start, moves.deposit, moves.arc)
             self.rows = self.rows.append(new)
         self._advance(end=False)
         return self._release()
@@ -132,7 +133,7 @@ class CorrectStage:
         start = np.empty_like(r.words[a:b])
         start[1:] = r.words[a:b - 1]
         start[0] = r.words[a - 1] if a > 0 else (self.prev_words if self.prev_words is not None else np.nan)
-        return Moves(start, r.words[a:b], r.tcp[a:b], r.known_start[a:b], r.deposit[a:b])
+        return Moves(start, r.words[a:b], r.tcp[a:b], r.known_start[a:b], r.deposit[a:b], r.arc[a:b])
 
     def _commit(self, b: int) -> None:
         """Rows final .. b-1 become final: their beads go into the store."""
@@ -202,8 +203,16 @@ class CorrectStage:
         """Solve the episode (levels first..last), record its collisions, apply its words."""
         from ncfix.correct.solve import Episode
 
-        episode = Episode(self, first, last, np.array(sorted(collided), dtype=np.int64))
-        solution = self.strategy.solve(episode)
+        # An arc's centre is tied to its end points and (I J K) to its start: ncfix does not move
+        # them, so an episode that holds an arc, or ends where one starts, stays as programmed.
+        if np.isfinite(self.rows.arc[first:min(last + 2, len(self.rows)), 3]).any():
+            from ncfix.correct.solve import Solution
+
+            solution = Solution(self.rows.words[first:last + 1].copy(), sorted(collided),
+                                {row: "an arc (G2/G3) is in the way: ncfix does not re-orient arc blocks "
+                                 "or the blocks next to them" for row in collided})
+        else:
+            solution = self.strategy.solve(Episode(self, first, last, np.array(sorted(collided), dtype=np.int64)))
         unresolved = set(solution.unresolved)
         s = self.report.summary
         for row, entry in collided.items():

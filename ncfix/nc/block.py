@@ -26,7 +26,7 @@ class Block:
     (ncfix.nc.chunk); a Block is the line-by-line reader's answer for one line.
     """
 
-    __slots__ = ("lineno", "raw", "motion", "words", "state", "opaque", "e_delta")
+    __slots__ = ("lineno", "raw", "motion", "words", "state", "opaque", "e_delta", "arc")
 
     def __init__(self, lineno: int, raw: str, state: ModalState):
         self.lineno = lineno
@@ -36,6 +36,8 @@ class Block:
         self.words: tuple[float, ...] | None = None
         self.opaque = False  # an axis word holds an expression (`X#1`, `X=R1`)
         self.e_delta: float | None = None  # extrusion of this block, None without an E word
+        # G2/G3 that ncfix can follow: (cx, cy, cz, normal axis 0/1/2, +1 ccw / -1 cw); see Chunk.arc
+        self.arc: tuple[float, float, float, int, int] | None = None
 
     tcp = property(lambda self: self.state.tcp)
     inch = property(lambda self: self.state.inch)

@@ -17,6 +17,9 @@ class Chunk:
     e_delta : (n,) float64, extrusion of the line, NaN without an extrusion word
     tcp, inch, incremental, opaque : (n,) bool
     feed_mode : (n,) int16 (93, 94, 95); deposit_on : (n,) int8 (-1 when no deposit codes)
+    arc : (n, 5) float64, on G2/G3 blocks whose arc ncfix can follow: the centre (x, y, z; mm,
+        absolute), the index (0, 1, 2) of the axis normal to the arc's plane and the sense
+        (+1 counter-clockwise seen from that axis's + side, G3; -1 clockwise, G2); NaN elsewhere
     new_words : line index in the chunk → new words (k,), set by the stages that change blocks
     """
 
@@ -31,6 +34,7 @@ class Chunk:
     opaque: np.ndarray
     feed_mode: np.ndarray
     deposit_on: np.ndarray
+    arc: np.ndarray
     new_words: dict[int, np.ndarray] = field(default_factory=dict)
     reasons: dict[int, str] = field(default_factory=dict)
 
@@ -43,6 +47,7 @@ class Chunk:
             e_delta=np.full(n, np.nan), tcp=np.zeros(n, dtype=bool), inch=np.zeros(n, dtype=bool),
             incremental=np.zeros(n, dtype=bool), opaque=np.zeros(n, dtype=bool),
             feed_mode=np.full(n, 94, dtype=np.int16), deposit_on=np.full(n, -1, dtype=np.int8),
+            arc=np.full((n, 5), np.nan),
         )
 
     def __len__(self) -> int:

@@ -4,11 +4,19 @@ Tracks G90/G91, G20/G21 (Siemens G70/G71/G700/G710, Heidenhain ``BEGIN PGM … I
 G0/G1/G2/G3, G93/G94/G95, TCP on/off per profile, extrusion (M82/M83, ``G92 E``), the
 deposit codes, and the modal rule of vector words (none → previous vector; some → the missing
 ones are 0). On G2/G3, I J K are arc centres, never tool vectors.
+
+Arcs. A G2/G3 block gets its arc (``Block.arc``: centre, normal axis, sense) when ncfix can follow
+it: G17/G18/G19 planes; the centre from I J K (incremental from the start point, or absolute after
+G90.1) or from the radius (R, Siemens CR=; negative for more than 180°); Heidenhain ``C`` about the
+last ``CC`` pole and ``CR`` with R, both with DR+/DR-. Other forms (Siemens ``I=AC(..)``, Heidenhain
+CT/CP, an arc without a centre or radius) keep ``arc`` None: they are checked along their chord and
+the report says so.
 """
 
 from __future__ import annotations
 
 import math
+import re
 
 from ncfix.errors import ProgramError
 import numpy as np
@@ -28,6 +36,12 @@ _NON_MOTION_G = {4.0, 10.0, 28.0, 30.0, 53.0, 92.0, 28.1, 30.1, 92.1, 92.2, 92.3
 _HEIDENHAIN_LINEAR = {"L", "LN"}
 _MIN_RUN = 8  # shorter runs of plain lines are cheaper one by one than as arrays
 _HEIDENHAIN_ARC = {"C", "CR", "CT", "CP"}
+# Words of an arc: centre offsets and radius (Siemens CR=).
+_ARC_WORDS = {"I", "J", "K", "R", "CR"}
+# Plane code -> index of the axis normal to it, and the plane's two axes (right-handed with it).
+_PLANES = {17.0: 2, 18.0: 1, 19.0: 0}
+_PLANE_AXES = {2: (0, 1), 1: (2, 0), 0: (1, 2)}
+_DR_RE = re.compile(r"\bDR\s*([+-])", re.IGNORECASE)
 
 
 def _code_key(code: str) -> tuple[str, float | str]:
@@ -64,6 +78,9 @@ class Interpreter:
         self.motion: int | None = 1 if self.heidenhain else None
         self.incremental = False
         self.inch = False
+        self.plane = 2  # G17: arcs in XY
+        self.arc_centre_absolute = False  # G90.1 / G91.1
+        self.pole: tuple[float, float] | None = None  # Heidenhain CC (X, Y)
         self.feed_mode = 94
         self.e_relative = False
         self.e_value = 0.0
@@ -132,6 +149,8 @@ class Interpreter:
         chunk.feed_mode[i] = state.feed_mode
         chunk.deposit_on[i] = -1 if state.deposit_on is None else int(state.deposit_on)
         chunk.opaque[i] = block.opaque
+        if block.arc is not None:
+            chunk.arc[i] = block.arc
 
     def _plain_run(self, parse, chunk: Chunk, a: int, b: int) -> None:
         """Lines a..b-1, all plain or neutral: the modal rules as array operations."""
@@ -215,6 +234,7 @@ class Interpreter:
         opaque = False
         heidenhain_kind = None
         heidenhain_incremental: set[int] = set()
+        arc_words: dict[str, str] = {}
         for aname, avalue, addr, value in pairs:
             if aname:
                 addr, value = aname.upper(), avalue
@@ -222,9 +242,13 @@ class Interpreter:
                     if addr in self.index:
                         opaque = True
                         given[self.index[addr]] = None
+                    if addr in _ARC_WORDS:
+                        arc_words[addr] = ""  # an expression: the arc cannot be followed
                     continue
             else:
                 addr = addr.upper()
+            if addr in _ARC_WORDS and value:
+                arc_words[addr] = value
             if addr == "G":
                 try:
                     gs.append(parse_number(value))
@@ -277,6 +301,12 @@ class Interpreter:
                 self.inch = False
             elif g in (93.0, 94.0, 95.0):
                 self.feed_mode = int(g)
+            elif g in _PLANES:
+                self.plane = _PLANES[g]
+            elif g == 90.1:
+                self.arc_centre_absolute = True
+            elif g == 91.1:
+                self.arc_centre_absolute = False
             if g == 92.0:
                 g92 = True
             if g in _NON_MOTION_G:
@@ -319,6 +349,7 @@ class Interpreter:
                     self.e_value = e
 
         # -- axis words ----------------------------------------------------------------------
+        start = [self.words[self.index[a]] for a in "XYZ"]  # a copy: the words change below
         if given:
             arc = self.motion in (2, 3)
             vector_given = False
@@ -360,17 +391,66 @@ class Interpreter:
                     raise self._zero_vector(lineno)
                 for letter, value in zip(self.profile.kinematics.orientation_letters, comps):
                     new[self.index[letter]] = value
-            if g92 or non_motion:
+            if heidenhain_kind == "CC":  # the pole of later C arcs; the machine does not move
+                end = [new[self.index[a]] for a in "XY"]
+                self.pole = (end[0], end[1]) if all(math.isfinite(v) for v in end) else None
+                for a, v in zip("XYZ", start):
+                    new[self.index[a]] = v
+            elif g92 or non_motion:
                 if not g92:
                     for idx in given:  # homing / machine-coordinate moves: position now unknown
                         new[idx] = NAN
             elif self.motion is not None:
                 block.motion = self.motion
+                if self.motion in (2, 3) or (self.heidenhain and heidenhain_kind in _HEIDENHAIN_ARC):
+                    block.arc = self._arc(start, [new[self.index[a]] for a in "XYZ"], arc_words, code,
+                                          heidenhain_kind)
         block.opaque = opaque
         block.state = self._state()
         if block.motion is not None:
             block.words = tuple(self.words)
         return block
+
+    def _arc(self, start: list[float], end: list[float], words: dict[str, str], code: str,
+             heidenhain_kind: str | None) -> tuple[float, float, float, int, int] | None:
+        """The arc of a G2/G3 (Heidenhain C/CR) block from ``start`` to ``end`` (mm), or None when
+        ncfix cannot follow it (module doc)."""
+        if not all(math.isfinite(v) for v in (*start, *end)) or "" in words.values():
+            return None
+        scale = MM_PER_INCH if self.inch else 1.0
+        if self.heidenhain:
+            axis = 2
+            dr = _DR_RE.search(code)
+            if dr is None:
+                return None
+            sense = 1 if dr.group(1) == "+" else -1
+        else:
+            axis = self.plane
+            sense = 1 if self.motion == 3 else -1
+        a, b = _PLANE_AXES[axis]
+        centre = list(start)
+        if self.heidenhain and heidenhain_kind == "C":
+            if self.pole is None:
+                return None
+            centre[0], centre[1] = self.pole
+        elif not self.heidenhain and any(letter in words for letter in "IJK"):
+            for k, letter in zip((a, b), ("IJK"[a], "IJK"[b])):
+                offset = parse_number(words[letter]) * scale if letter in words else 0.0
+                centre[k] = offset if self.arc_centre_absolute and letter in words else start[k] + offset
+        elif ("R" in words or "CR" in words) and (heidenhain_kind in (None, "CR")):
+            radius = parse_number(words.get("CR", words.get("R", "0"))) * scale
+            da, db = end[a] - start[a], end[b] - start[b]
+            chord = math.hypot(da, db)
+            if chord == 0.0 or abs(radius) < 0.5 * chord - 1e-6:
+                return None
+            rise = math.sqrt(max(radius * radius - 0.25 * chord * chord, 0.0))
+            # Left of the chord (seen from +axis) for a counter-clockwise arc up to 180°.
+            side = sense * (1.0 if radius > 0 else -1.0)
+            centre[a] = 0.5 * (start[a] + end[a]) - side * rise * db / chord
+            centre[b] = 0.5 * (start[b] + end[b]) + side * rise * da / chord
+        else:
+            return None
+        return (centre[0], centre[1], centre[2], axis, sense)
 
     def _state(self) -> ModalState:
         """The current modal settings, as one object shared until a setting changes."""

@@ -1,4 +1,11 @@
-"""Renders chunks: unchanged lines as their raw bytes, changed blocks rewritten in place (ncfix.nc.emit)."""
+"""Renders chunks: unchanged lines as their raw bytes, changed blocks rewritten in place (ncfix.nc.emit).
+
+Modal carry-over. A program states a word only when its value changes (``G1 Y50.`` keeps X, B and
+C). After a changed block, the next motion block that leaves out a word the change altered would
+inherit the changed value: the writer restates the programmed value on that block (in the
+input's style) and lists it in ``restored``; the pipeline reports it as a ``blend`` change.
+Incremental (G91) blocks after a change are rewritten so that they arrive where the input did.
+"""
 
 from __future__ import annotations
 
@@ -25,8 +32,10 @@ class Writer:
         self.vector_letters = kin.orientation_letters if profile.is_vector else ()
         self.emitted: np.ndarray | None = None  # last motion block's words as written
         self.programmed: np.ndarray | None = None  # ... and as the input had them
+        self.restored: list[int] = []  # lines of the last rendered chunk rewritten only to restate words
 
     def render(self, chunk: Chunk) -> bytes:
+        self.restored = []
         moving = np.flatnonzero(chunk.motion >= 0)
         drifted = self.emitted is not None and not np.array_equal(self.emitted, self.programmed, equal_nan=True)
         if not chunk.new_words and not drifted:
@@ -48,11 +57,18 @@ class Writer:
         self.emitted, self.programmed = np.array(target, dtype=np.float64), words.copy()
         incremental = bool(chunk.incremental[i])
         changed = i in chunk.new_words
-        if not changed and not (incremental and previous_emitted is not None
-                                and not np.array_equal(previous_emitted, previous_programmed, equal_nan=True)):
+        drifted = previous_emitted is not None and not np.array_equal(previous_emitted, previous_programmed,
+                                                                        equal_nan=True)
+        if not changed and not drifted:
             return None
         values: dict[str, float] = {}
         scale = MM_PER_INCH if chunk.inch[i] else 1.0
+        if drifted and not incremental:
+            values = self._restated(chunk, i, previous_emitted, previous_programmed, scale)
+            if not changed:
+                if not values:
+                    return None
+                self.restored.append(i)
         for k, letter in enumerate(self.letters):
             new, old = float(target[k]), float(words[k])
             if math.isnan(new):
@@ -77,3 +93,27 @@ class Writer:
         if self.profile.dialect == "heidenhain" and required:
             raw = _HEIDENHAIN_L.sub(r"\1LN\2", raw, count=1)
         return rewrite_line(raw, self.profile, values, required)
+
+    def _restated(self, chunk: Chunk, i: int, emitted: np.ndarray, programmed: np.ndarray, scale: float) -> dict:
+        """Words an absolute line leaves out whose carried-over value the output changed: letter →
+        the programmed value (program units). A vector profile's block without any vector word
+        keeps the previous vector, so all of them are restated; with some, the rest are 0."""
+        from ncfix.nc.lexer import code_of, word_spans
+
+        said = {span.address.upper() for span in word_spans(code_of(chunk.lines[i].decode("latin-1").rstrip("\r\n")))}
+        words = chunk.words[i]
+        out: dict[str, float] = {}
+        vector_said = any(letter in said for letter in self.vector_letters)
+        for k, letter in enumerate(self.letters):
+            if letter in said or math.isnan(float(words[k])):
+                continue
+            if letter in self.vector_letters and vector_said:
+                continue
+            if math.isclose(float(emitted[k]), float(programmed[k]), abs_tol=1e-12):
+                continue
+            out[letter] = float(words[k]) / (scale if letter in ("X", "Y", "Z") else 1.0)
+        if self.vector_letters and any(letter in out for letter in self.vector_letters):
+            for k, letter in enumerate(self.letters):
+                if letter in self.vector_letters:
+                    out[letter] = float(words[k])
+        return out

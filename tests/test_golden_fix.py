@@ -1,0 +1,81 @@
+"""Golden correction cases, one per built-in machine profile (tests/cases/fix, made by its
+make_cases.py): ncfix turns each colliding input into exactly the expected output, the output is
+free (exact reference at every block, and ncfix finds nothing when run on it again), every step
+is within θ, every tilt within Θ, and the tip C stays where it was."""
+
+from __future__ import annotations
+
+import io
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import ncfix
+from ncfix.geometry.frames import angle_between_deg
+from ncfix.nc.modal import Interpreter
+from ncfix.profiles import load_profile
+
+CASES = Path(__file__).parent / "cases" / "fix"
+sys.path.insert(0, str(CASES))
+import make_cases  # noqa: E402
+
+pytestmark = pytest.mark.heavy
+STANDOFF = 6.0
+LEVER_MM = 250.0
+
+
+def _poses(data: bytes, profile):
+    """Tip C, tool vector N and rotation R of every motion block with every axis known."""
+    from ncfix.collision.path import PathChecker
+
+    chunk = Interpreter(profile).feed_chunk(data.splitlines(keepends=True), 1)
+    rows = np.nonzero(chunk.motion >= 0)[0]
+    words = chunk.words[rows]
+    rows, words = rows[np.isfinite(words).all(axis=1)], words[np.isfinite(words).all(axis=1)]
+    tcp = chunk.tcp[rows] if profile.tcp == "program" else np.full(len(rows), profile.tcp != "never")
+    path = PathChecker.__new__(PathChecker)
+    path.kin, path.is_vector = profile.kinematics, profile.is_vector
+    P, N, R = path.forward(path.normalise(words), tcp)
+    return rows, P + STANDOFF * N, N, R
+
+
+@pytest.mark.parametrize("name, src", make_cases.case_files(), ids=[n for n, _ in make_cases.case_files()])
+def test_golden_fix(name, src):
+    profile = load_profile(name)
+    settings = make_cases.settings(profile)
+    expected = make_cases.expected_path(src).read_bytes()
+    data = src.read_bytes()
+    out = io.BytesIO()
+    report = ncfix.process(io.BytesIO(data), out, **settings)
+    assert out.getvalue() == expected, f"regenerate with {make_cases.__file__} --expected and review the diff"
+    assert report.exit_code == 0 and report.summary["colliding_blocks_before"] > 0
+    before, after = data.splitlines(), expected.splitlines()
+    assert len(before) == len(after)
+    changed = [i + 1 for i, (a, b) in enumerate(zip(before, after)) if a != b]
+    assert changed == sorted(c["line"] for c in report.changes)
+
+    # The output as a program: free, within θ and Θ, the tip where it was.
+    rows0, C0, N0, _ = _poses(data, profile)
+    rows1, C1, N1, R1 = _poses(expected, profile)
+    assert np.array_equal(rows0, rows1)
+    # The tip moves only by the rounding of the printed words: linear words directly, angles through
+    # the lever from the rotary axes (a TCP-off machine's machine XYZ: up to LEVER_MM away).
+    fmt = profile.number_format
+    rounding = 0.5 * 10.0 ** -fmt.linear * np.sqrt(3) + LEVER_MM * np.radians(0.5 * 10.0 ** -fmt.angle) + 2e-6
+    assert np.linalg.norm(C1 - C0, axis=1).max() < rounding
+    assert angle_between_deg(N1, N0).max() <= 30.0 + 1e-6
+    assert angle_between_deg(N1[1:], N1[:-1]).max() <= 2.0 + 0.01
+    from ncfix.geometry.mesh import load_head, load_mesh
+    from ncfix.reference import ExactReference
+
+    wall = settings["part"][0]
+    ref = ExactReference(load_head(settings["head"]).mesh, {"wall": load_mesh(wall, "part").mesh})
+    assert not any(ref.collides(c, r) for c, r in zip(C1, R1))
+
+    # Idempotence: ncfix finds nothing to do in its own output.
+    again = io.BytesIO()
+    report2 = ncfix.process(io.BytesIO(expected), again, **settings)
+    assert again.getvalue() == expected
+    assert report2.summary["colliding_blocks_before"] == 0 and report2.exit_code == 0
