@@ -459,6 +459,24 @@ def _points(report: Report) -> tuple[list[list[float]], list[list[float]]]:
     return red, green
 
 
+def _winding(vertices: np.ndarray, faces: np.ndarray) -> int:
+    """+1 (-1): the faces form a closed shell wound outward (inward), so the picture can skip the
+    faces turned away from the viewer, which painting in depth order would draw over near ones;
+    0: an open or inconsistently wound mesh (every face is drawn)."""
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(f) == 0:
+        return 0
+    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    n = int(f.max()) + 1
+    directed = np.unique(edges[:, 0] * n + edges[:, 1])
+    # closed and consistently wound: every edge once in each direction
+    if len(directed) != len(edges) or not np.isin(edges[:, 1] * n + edges[:, 0], directed).all():
+        return 0
+    tri = np.asarray(vertices, dtype=np.float64)[f]
+    volume = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum()
+    return int(np.sign(volume))
+
+
 def _view_data(report: Report) -> str:
     red, green = _points(report)
     path: list[float] = []
@@ -466,7 +484,8 @@ def _view_data(report: Report) -> str:
         path = np.round(report.trace.columns()["points"], 2).reshape(-1).tolist()
     data = {
         "meshes": [{"name": p.name, "v": np.round(p.vertices.astype(np.float64), 2).reshape(-1).tolist(),
-                    "f": p.faces.reshape(-1).tolist()} for p in report.previews],
+                    "f": p.faces.reshape(-1).tolist(), "cull": _winding(p.vertices, p.faces)}
+                   for p in report.previews],
         "path": path,
         "red": [round(v, 2) for p in red for v in p],
         "green": [round(v, 2) for p in green for v in p],
@@ -556,7 +575,7 @@ window.addEventListener('error', function (e) { document.body.setAttribute('data
     var vwx = -Math.sin(yaw) * ce, vwy = -Math.cos(yaw) * ce, vwz = se;  // towards the viewer, world frame
     data.meshes.forEach(function (m) {
       var p = project(m.v), f = m.f, n = f.length / 3, depth = new Float32Array(n), shade = new Float32Array(n);
-      var order = new Uint32Array(n);
+      var order = new Uint32Array(n), hidden = new Uint8Array(n);
       for (var t = 0; t < n; t++) {
         var a = 3 * f[3 * t], b = 3 * f[3 * t + 1], c = 3 * f[3 * t + 2];
         depth[t] = p[a + 2] + p[b + 2] + p[c + 2];
@@ -565,12 +584,15 @@ window.addEventListener('error', function (e) { document.body.setAttribute('data
         var vx = m.v[c] - m.v[a], vy = m.v[c + 1] - m.v[a + 1], vz = m.v[c + 2] - m.v[a + 2];
         var nx = uy * vz - uz * vy, ny = uz * vx - ux * vz, nz = ux * vy - uy * vx;
         var len = Math.hypot(nx, ny, nz) || 1;
-        shade[t] = Math.abs((nx * vwx + ny * vwy + nz * vwz) / len);
+        var facing = (nx * vwx + ny * vwy + nz * vwz) / len;
+        shade[t] = Math.abs(facing);
+        hidden[t] = m.cull * facing < 0 ? 1 : 0;  // the back of a closed shell (m.cull: its winding)
         order[t] = t;
       }
       order.sort(function (i, j) { return depth[j] - depth[i]; });
       for (var k = 0; k < n; k++) {
         var t2 = order[k], a2 = 3 * f[3 * t2], b2 = 3 * f[3 * t2 + 1], c2 = 3 * f[3 * t2 + 2];
+        if (hidden[t2]) continue;
         var g = 0.35 + 0.65 * shade[t2];
         var col = 'rgb(' + Math.round(150 * g) + ',' + Math.round(165 * g) + ',' + Math.round(185 * g) + ')';
         ctx.fillStyle = col; ctx.strokeStyle = col; ctx.lineWidth = 0.6;

@@ -36,8 +36,52 @@ def read_chunks(stream: BinaryIO, interpreter: Interpreter, lines_per_chunk: int
         lineno += len(lines)
 
 
-def build_stages(options: Options, profile: Profile, report: Report) -> list[Stage]:
-    """The window stages for these options: none without --head, else the collision checker."""
+def program_box(stream: BinaryIO, profile: Profile, options: Options, source: str) -> "np.ndarray | None":
+    """(2, 3) box of every programmed point P and tip C = P + h·N (arcs: their whole circle), read
+    in a first pass over a seekable file (which is then rewound); None for a pipe or a program
+    without a checkable motion block. The part grids are cropped to it (``build_stages``)."""
+    import numpy as np
+
+    from ncfix.collision.path import PathChecker
+
+    try:
+        if not stream.seekable():
+            return None
+        start = stream.tell()
+    except (AttributeError, OSError, ValueError):
+        return None
+    path = PathChecker.__new__(PathChecker)  # forward kinematics only
+    path.kin, path.is_vector = profile.kinematics, profile.is_vector
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    try:
+        for chunk in read_chunks(stream, Interpreter(profile, source, options.deposit_codes)):
+            rows = np.nonzero(chunk.motion >= 0)[0]
+            words = chunk.words[rows]
+            ok = np.isfinite(words).all(axis=1)
+            rows, words = rows[ok], words[ok]
+            if not len(rows):
+                continue
+            tcp = chunk.tcp[rows] if profile.tcp == "program" else np.full(len(rows), profile.tcp == "always")
+            P, N, _ = path.forward(path.normalise(words), tcp)
+            pts = [P, P + options.standoff * N]
+            arc = chunk.arc[rows]
+            on_arc = np.isfinite(arc[:, 0])
+            if on_arc.any():
+                radius = np.linalg.norm(P[on_arc] - arc[on_arc, :3], axis=1)[:, None]
+                pts += [arc[on_arc, :3] - radius, arc[on_arc, :3] + radius]
+            pts = np.concatenate(pts)
+            pts = pts[np.isfinite(pts).all(axis=1)]
+            if len(pts):
+                lo, hi = np.minimum(lo, pts.min(axis=0)), np.maximum(hi, pts.max(axis=0))
+    finally:
+        stream.seek(start)
+    return np.array([lo, hi]) if np.isfinite(lo).all() else None
+
+
+def build_stages(options: Options, profile: Profile, report: Report, box=None) -> list[Stage]:
+    """The window stages for these options: none without --head, else the collision checker.
+    ``box``: where the program's points and tips are (``program_box``), to crop the part grids
+    to what the head can reach from them."""
     if options.head is None:
         return []
     from pathlib import Path
@@ -57,9 +101,17 @@ def build_stages(options: Options, profile: Profile, report: Report) -> list[Sta
         loaded_parts.append(loaded)
     model = build_head_model(head.mesh, options.pitch)
     report.details.append(model.summary())
+    reach_box = None
+    if box is not None:
+        import numpy as np
+
+        # The head lies within rho of its tip; with --pivot point a tilted tip stays within h of P.
+        rho = float(np.linalg.norm(head.mesh.vertices, axis=1).max())
+        reach = rho + options.standoff + options.clearance + 2 * options.pitch
+        reach_box = np.array([box[0] - reach, box[1] + reach])
     checker = Checker(head.mesh, model, parts, pitch_mm=options.pitch, clearance_mm=options.clearance,
                       bead_radius_mm=options.bead_radius, tip_allowance_mm=options.tip_allowance,
-                      device=options.device)
+                      device=options.device, part_bounds_mm=reach_box)
     if options.check:
         return [CheckStage(checker, profile, options, report, placed_parts=loaded_parts)]
     from ncfix.correct.solve import make_strategy
@@ -79,7 +131,8 @@ def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>",
     profile = load_profile(options.machine)
     report = Report(input=source, machine=profile.name, options=options)
     interpreter = Interpreter(profile, source, options.deposit_codes)
-    stages = build_stages(options, profile, report)
+    box = program_box(src, profile, options, source) if options.head is not None and options.part else None
+    stages = build_stages(options, profile, report, box)
     writer = Writer(profile)
     bytes_done = lines_done = 0
 

@@ -72,7 +72,7 @@ def corrector(monkeypatch):
 
     def install(tilt=(), stuck=()):
         monkeypatch.setattr("ncfix.pipeline.build_stages",
-                            lambda options, profile, report: [FakeCorrector(options, report, tilt, stuck)])
+                            lambda options, profile, report, box=None: [FakeCorrector(options, report, tilt, stuck)])
 
     return install
 

@@ -260,6 +260,31 @@ def test_random_poses_near_beads_no_misses(bead_checker, n, seed):
     assert rate < 0.02
 
 
+def test_retired_beads_are_still_seen_conservatively(bead_checker):
+    """With room for only 512 exact centres, most of the wall is retired into the old field:
+    still no misses against the exact reference on every bead, only more false alarms, and the
+    store keeps at most exact_max + exact_max/4 centres."""
+    beads = _wall_beads(0.5)
+    n = 2000
+    C, R = _random_bead_poses(n, seed=5)
+    truth = _exact_bead_clearance(bead_checker.reference, C, R, beads, 1.0) < 0
+    store = BeadStore(1.0, exact_max=512)
+    store.field(PITCH)
+    for part in np.array_split(beads, 20):  # laid in runs, as windows lay them
+        store.add(part)
+    assert store.retired > 0.5 * len(beads) and store.count - store.retired <= 512 + 128
+    assert store.old is not None and store.old.count == store.retired
+    q, ids, _ = store.within(beads[-5:], np.full(5, 3.0))
+    assert len(ids) and ids.min() >= store.retired  # only kept beads, laying-order ids
+    before = bead_checker.stats.retired_bead_hits
+    hit, _ = bead_checker.check_deposit(C, R, np.zeros(n), np.arange(n), store, np.zeros((0, 3)),
+                                        np.zeros(0, dtype=np.int64))
+    assert not (truth & ~hit).any()
+    assert bead_checker.stats.retired_bead_hits > before
+    free = bead_checker.poses_free(C, R, np.arange(n), store, np.zeros((0, 3)), np.zeros(0, dtype=np.int64))
+    assert not (truth & free).any()
+
+
 def test_bead_field_is_a_lower_bound_on_the_distance_to_the_beads():
     """The rolling field (chains, isolated beads, two adds, an overlay) never exceeds the exact
     distance to the bead spheres, and comes back unchanged after the overlay."""
@@ -442,6 +467,20 @@ def test_deposit_workload_collides_only_with_what_it_printed(bead_checker):
 
     _, off = _run(data, deposit_codes=("M3", "M5"), bead_radius=0.0)
     assert off.collisions == [] and off.exit_code == 0
+
+
+def test_deposit_workload_with_most_beads_retired_flags_at_least_as_much(bead_checker, monkeypatch):
+    """Bounded memory: with room for 256 exact centres the wall's lower layers are retired long
+    before the pass beside it; every block flagged with all beads exact is still flagged."""
+    P, N, wall, lines, feed = _wall_lines()
+    data = "".join(lines).encode()
+    _, exact = _run(data, deposit_codes=("M3", "M5"))
+    monkeypatch.setattr("ncfix.collision.deposit.EXACT_BEADS_MAX", 256)
+    out, bounded = _run(data, deposit_codes=("M3", "M5"))
+    assert out == data
+    flagged_exact = {c["line"] for c in exact.collisions}
+    flagged_bounded = {c["line"] for c in bounded.collisions}
+    assert flagged_exact and flagged_exact <= flagged_bounded
 
 
 @pytest.mark.heavy

@@ -309,6 +309,18 @@ def test_html_of_a_check_run_and_of_a_pass_through_render():
     assert "passed through unchanged" in plain and "<svg" not in plain and "<canvas" not in plain
 
 
+def test_the_3d_picture_skips_the_back_of_closed_shells_only():
+    from ncfix.html import _winding
+
+    box = trimesh.creation.box(extents=(20.0, 15.0, 50.0))
+    assert _winding(box.vertices, box.faces) == 1  # wound outward: back faces are not drawn
+    assert _winding(box.vertices, box.faces[:, ::-1]) == -1
+    assert _winding(box.vertices, box.faces[1:]) == 0  # open: every face is drawn, as before
+    flipped = box.faces.copy()
+    flipped[0] = flipped[0, ::-1]
+    assert _winding(box.vertices, flipped) == 0
+
+
 def load_script():
     spec = importlib.util.spec_from_file_location("render_html", REPO / "scripts" / "render_html.py")
     module = importlib.util.module_from_spec(spec)

@@ -151,6 +151,7 @@ class CheckerStats:
     deposit_undecided: int = 0
     exact_bead_poses: int = 0
     exact_bead_tests: int = 0
+    retired_bead_hits: int = 0  # poses called colliding near retired beads (no exact test there)
     seconds: dict = field(default_factory=dict)
 
 
@@ -424,11 +425,14 @@ class Checker:
         reach = float(np.linalg.norm(ref._bead_head.vertices, axis=1).max()) + need
         ta = self.tip_allowance_mm
         sphere = coal.Sphere(float(need))
+        if store.old is not None:  # retired beads: only their field decides (``_exact_deposit``)
+            zero = np.zeros(n)
+            free &= ~self._undecided_batched(self.dep_tree, store.old.lower_bound, C, R, zero, zero)
         trees = store.trees() if store.count else []
         # Poses of one level share their tip (tip pivot) or stay within h of it (point pivot).
         keys = np.round(C / 1e-3).astype(np.int64)
-        for key in np.unique(np.column_stack([seq, keys]), axis=0):
-            sel = np.flatnonzero((seq == key[0]) & (keys == key[1:]).all(axis=1))
+        for key in np.unique(np.column_stack([seq, keys])[free], axis=0):
+            sel = np.flatnonzero((seq == key[0]) & (keys == key[1:]).all(axis=1) & free)
             centre = C[sel].mean(axis=0)
             radius = reach + float(np.linalg.norm(C[sel] - centre, axis=1).max())
             # Store order is laying order: runs of consecutive beads on one move are collinear.
@@ -601,7 +605,24 @@ class Checker:
 
     def _exact_deposit(self, C, R, lin, ang, seq, store: BeadStore, pending, pending_seq, bead_field: BeadField,
                        clearances: bool = True):
-        """The exact deposit test of undecided poses: candidate beads near the failing ~4 mm nodes,
+        """The exact deposit test of undecided poses (``_exact_kept``). Beads the store retired
+        (BeadStore: only a field of them is left) cannot be tested exactly: a pose that their
+        field cannot clear counts as a hit, with clearance 0 (errs toward "collides")."""
+        if store.old is None:
+            return self._exact_kept(C, R, lin, ang, seq, store, pending, pending_seq, bead_field, clearances)
+        near_old = self._undecided_batched(self.dep_tree, store.old.lower_bound, C, R, lin, ang)
+        self.stats.retired_bead_hits += int(near_old.sum())
+        hit = near_old.copy()
+        clearance = np.where(near_old, 0.0, np.inf)
+        rest = np.nonzero(~near_old)[0]
+        if len(rest):
+            hit[rest], clearance[rest] = self._exact_kept(C[rest], R[rest], lin[rest], ang[rest], seq[rest], store,
+                                                          pending, pending_seq, bead_field, clearances)
+        return hit, clearance
+
+    def _exact_kept(self, C, R, lin, ang, seq, store: BeadStore, pending, pending_seq, bead_field: BeadField,
+                    clearances: bool = True):
+        """The exact test against the kept beads: candidate beads near the failing ~4 mm nodes,
         the sequence filter, the allowance plane, the head grid, then the exact signed distance
         (the clearance of each hit pose, at its first hit bead, unless not ``clearances``)."""
         from scipy.spatial import cKDTree

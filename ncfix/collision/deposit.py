@@ -13,7 +13,9 @@ half a pitch apart (each depositing move from its start to its end point, both i
 ``BeadStore`` keeps them twice:
 
 - the exact centres, for the exact fallback (log-structured k-d trees, built only when a query
-  needs them: a program that never comes near its beads never builds one; 24 bytes a bead);
+  needs them: a program that never comes near its beads never builds one; 24 bytes a bead), at
+  most EXACT_BEADS_MAX of them, the newest: older ones are retired into a field of their own,
+  and an exact test near them errs toward "collides" (``BeadStore``);
 - ``BeadField``, a rolling distance field that lower-bounds the distance from any point to the
   bead material, for the fast test (see its doc). Its memory is that of the box around the beads
   (one byte per pitch³ cell of the bead box padded by a few mm, plus a 4 mm coarse grid), not the
@@ -26,6 +28,13 @@ from enum import Enum
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+# Exact bead centres kept (the newest; BeadStore): 2**18 beads is about 65 m of deposited path at
+# the 0.5 mm pitch (beads every 0.25 mm), 6 MB of centres and about as much of k-d trees.
+EXACT_BEADS_MAX = 1 << 18
+# The retired beads' field is this many times coarser than the pitch (it only has to clear poses
+# away from them: near them a pose counts as colliding anyway).
+OLD_FIELD_COARSENING = 2
 
 
 class DepositRule(Enum):
@@ -80,17 +89,27 @@ class BeadStore:
     """Bead sphere centres laid so far (workpiece mm): exact centres and the rolling field.
 
     ``add`` appends centres (consecutive centres at most ``link`` apart form a chain, stamped into
-    the field as a chain of segments, which holds every sphere on it). The k-d trees over the
-    exact centres are built on the first query that needs them and merged as beads come in.
+    the field as a chain of segments, which holds every sphere on it). The exact centres are kept
+    in levels (runs of consecutive beads, at most LEVEL_BEADS_MAX each, merged like a binary
+    counter), each with a k-d tree built on the first query that needs it.
+
+    Bounded memory: at most EXACT_BEADS_MAX exact centres are kept, the newest. Older ones are
+    *retired* into ``old``, a BeadField of their own at twice the pitch (its memory is their box,
+    like the main field's): an exact test that the old field cannot clear counts as a hit (``Checker``), so
+    the answer errs only toward "collides", and only near material laid more than
+    EXACT_BEADS_MAX beads (about 65 m of path at the 0.5 mm pitch) earlier.
     """
 
-    def __init__(self, radius_mm: float, leaf_size: int = 4096):
+    def __init__(self, radius_mm: float, exact_max: int | None = None):
         self.radius_mm = float(radius_mm)
-        self._levels: list[tuple[cKDTree, np.ndarray]] = []  # (tree, points float64), sizes ~doubling
-        self._buffer: list[np.ndarray] = []
-        self._buffer_n = 0
-        self._leaf = leaf_size
-        self.count = 0
+        self.exact_max = int(exact_max if exact_max is not None else EXACT_BEADS_MAX)
+        self.level_max = max(1, self.exact_max // 4)
+        self._levels: list[list] = []  # [points (m, 3) float64 in laying order, cKDTree or None], oldest first
+        self._open: list[np.ndarray] = []  # beads not in a level yet (newest)
+        self._open_n = 0
+        self.count = 0  # every bead ever added
+        self.retired = 0  # the oldest ``retired`` beads live only in ``old``
+        self.old: BeadField | None = None
         self._field: BeadField | None = None
         self._unstamped: list[np.ndarray] = []
 
@@ -99,50 +118,74 @@ class BeadStore:
         pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
         if len(pts) == 0:
             return
-        self._add_exact(pts)
         if self._field is not None:
             self._field.add(pts)
         else:
             self._unstamped.append(pts)
+        self._add_exact(pts)
 
     def _add_exact(self, pts: np.ndarray) -> None:
         """Only the exact centres (the caller stamped the field already)."""
-        self._buffer.append(pts)
-        self._buffer_n += len(pts)
+        self._open.append(pts)
+        self._open_n += len(pts)
         self.count += len(pts)
+        if self._open_n >= self.level_max:
+            self._close()
+        if self.count - self.retired > self.exact_max + self.level_max and self._field is not None:
+            self._retire()
 
     def field(self, pitch_mm: float) -> "BeadField":
         """The rolling distance field of every bead added so far, at ``pitch_mm`` (made on first use)."""
         if self._field is None or self._field.pitch_mm != float(pitch_mm):
+            if self.retired:
+                raise RuntimeError("the bead field's pitch cannot change once beads are retired")
             self._field = BeadField(self.radius_mm, pitch_mm)
-            self._unstamped = [p for _, p in self._levels] + list(self._buffer)
+            self._unstamped = [p for p, _ in self._levels] + list(self._open)
         for pts in self._unstamped:
             self._field.add(pts)
         self._unstamped = []
+        if self.count - self.retired > self.exact_max + self.level_max:
+            self._retire()
         return self._field
 
-    def _flush_buffer(self) -> None:
-        if not self._buffer:
+    def _close(self) -> None:
+        """The open beads become a level; levels merge while the newest is no bigger (and small)."""
+        if not self._open:
             return
-        pts = np.concatenate(self._buffer)
-        self._buffer, self._buffer_n = [], 0
-        # Merge while the newest level is no bigger than the new one (binary-counter merging).
-        while self._levels and len(self._levels[-1][1]) <= len(pts):
-            pts = np.concatenate([self._levels.pop()[1], pts])
-        self._levels.append((cKDTree(pts, leafsize=16, balanced_tree=False, compact_nodes=False), pts))
+        pts = np.concatenate(self._open)
+        self._open, self._open_n = [], 0
+        while self._levels and len(self._levels[-1][0]) <= len(pts) and \
+                len(self._levels[-1][0]) + len(pts) <= self.level_max:
+            pts = np.concatenate([self._levels.pop()[0], pts])
+        self._levels.append([pts, None])
+
+    def _retire(self) -> None:
+        """Move the oldest levels into the old field until at most ``exact_max`` beads stay exact."""
+        self._close()
+        while self._levels and self.count - self.retired > self.exact_max:
+            pts, _ = self._levels.pop(0)
+            if self.old is None:  # twice as coarse: 1/8 of the memory and of the stamping
+                self.old = BeadField(self.radius_mm, OLD_FIELD_COARSENING * self._field.pitch_mm)
+            self.old.add(pts)
+            self.retired += len(pts)
 
     def trees(self) -> list[tuple[cKDTree, np.ndarray]]:
-        self._flush_buffer()
-        return self._levels
+        """(k-d tree, centres) of the exact levels, oldest first (trees built here when missing)."""
+        self._close()
+        for level in self._levels:
+            if level[1] is None:
+                level[1] = cKDTree(level[0], leafsize=16, balanced_tree=False, compact_nodes=False)
+        return [(tree, pts) for pts, tree in self._levels]
 
     @property
     def nbytes(self) -> int:
-        field = self._field.nbytes if self._field is not None else 0
-        return int(sum(p.nbytes * 2 for _, p in self._levels) + self._buffer_n * 24 + field)
+        fields = sum(f.nbytes for f in (self._field, self.old) if f is not None)
+        exact = sum(p.nbytes * (2 if tree is not None else 1) for p, tree in self._levels) + self._open_n * 24
+        return int(exact + fields)
 
     # -- queries -----------------------------------------------------------------------------
     def nearest(self, centers_mm: np.ndarray, upper_mm: float = np.inf) -> np.ndarray:
-        """Distance (m,) from each point (m, 3) to the nearest bead centre (inf when beyond ``upper_mm``)."""
+        """Distance (m,) from each point (m, 3) to the nearest exact bead centre (inf when beyond ``upper_mm``)."""
         centers = np.asarray(centers_mm, dtype=np.float64).reshape(-1, 3)
         out = np.full(len(centers), np.inf)
         for tree, _ in self.trees():
@@ -151,15 +194,15 @@ class BeadStore:
         return out
 
     def within(self, centers_mm: np.ndarray, radii_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Bead centres within ``radii_mm`` (m,) of each point (m, 3).
+        """Exact bead centres within ``radii_mm`` (m,) of each point (m, 3).
 
         returns (query index (k,) int64, bead id (k,) int64, bead centres (k, 3) float64), one row
-        per hit; ids are unique across the store (for removing duplicates).
+        per hit; ids are laying-order numbers, unique across the store (retired beads keep theirs).
         """
         centers = np.asarray(centers_mm, dtype=np.float64).reshape(-1, 3)
         radii = np.broadcast_to(np.asarray(radii_mm, dtype=np.float64), (len(centers),))
         qs, ids, ps = [], [], []
-        base = 0
+        base = self.retired
         for tree, pts in self.trees():
             q, idx = query_pairs(tree, centers, radii)
             if len(q):
