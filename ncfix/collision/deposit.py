@@ -605,14 +605,26 @@ def _stamp_kernels() -> _Kernels:
     return _KERNELS[0]
 
 
+RADIUS_GROUPS = 4  # query_pairs: groups of queries by radius
+
+
 def query_pairs(tree: cKDTree, centers: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """All (query index, point index) pairs within ``radii`` (m,) of ``centers`` (m, 3)."""
     if len(centers) == 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    # One C-level pass against a tree of the queries at the largest radius, then each its own.
-    found = cKDTree(centers).sparse_distance_matrix(tree, float(np.max(radii)), output_type="ndarray")
-    keep = found["v"] <= radii[found["i"]]
-    return found["i"][keep].astype(np.int64), found["j"][keep].astype(np.int64)
+    # C-level passes against a tree of the queries at the largest radius of a group, then each its
+    # own; queries are grouped by radius (a few wide sweep margins would make every pass wide).
+    radii = np.asarray(radii, dtype=np.float64)
+    order = np.argsort(radii, kind="stable")
+    qs, ps = [], []
+    for group in np.array_split(order, min(RADIUS_GROUPS, len(order))):
+        found = cKDTree(centers[group]).sparse_distance_matrix(tree, float(radii[group].max()), output_type="ndarray")
+        keep = found["v"] <= radii[group][found["i"]]
+        qs.append(group[found["i"][keep]])
+        ps.append(found["j"][keep].astype(np.int64))
+    q, p = np.concatenate(qs), np.concatenate(ps)
+    first = np.lexsort((p, q))  # in query order, as one pass gives them
+    return q[first], p[first]
 
 
 def bead_samples(start_mm: np.ndarray, end_mm: np.ndarray, spacing_mm: float,
