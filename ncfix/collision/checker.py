@@ -61,6 +61,8 @@ MAX_PAIRS_PER_POSE = 32
 GROUP_MAX_PAIRS = 8
 # Poses per torch batch.
 POSE_BATCH = 8192
+# Poses per exact deposit batch (bounds the candidate (pose, bead) pairs held at once).
+EXACT_POSE_BATCH = 256
 # Sample groups (mm of travel, |ΔC| + ρ·θ summed) certified together, longest first.
 GROUP_LEVELS_MM = (24.0, 6.0, 1.5)
 # A group level that clears under 5% of its groups is skipped for this many calls.
@@ -608,16 +610,19 @@ class Checker:
         """The exact deposit test of undecided poses (``_exact_kept``). Beads the store retired
         (BeadStore: only a field of them is left) cannot be tested exactly: a pose that their
         field cannot clear counts as a hit, with clearance 0 (errs toward "collides")."""
-        if store.old is None:
-            return self._exact_kept(C, R, lin, ang, seq, store, pending, pending_seq, bead_field, clearances)
-        near_old = self._undecided_batched(self.dep_tree, store.old.lower_bound, C, R, lin, ang)
-        self.stats.retired_bead_hits += int(near_old.sum())
-        hit = near_old.copy()
-        clearance = np.where(near_old, 0.0, np.inf)
-        rest = np.nonzero(~near_old)[0]
-        if len(rest):
-            hit[rest], clearance[rest] = self._exact_kept(C[rest], R[rest], lin[rest], ang[rest], seq[rest], store,
-                                                          pending, pending_seq, bead_field, clearances)
+        n = len(C)
+        hit = np.zeros(n, dtype=bool)
+        clearance = np.full(n, np.inf)
+        if store.old is not None:
+            hit = self._undecided_batched(self.dep_tree, store.old.lower_bound, C, R, lin, ang)
+            self.stats.retired_bead_hits += int(hit.sum())
+            clearance[hit] = 0.0
+        rest = np.nonzero(~hit)[0]
+        # In batches: a nozzle running among its beads can have thousands of candidate beads a pose.
+        for a in range(0, len(rest), EXACT_POSE_BATCH):
+            sel = rest[a:a + EXACT_POSE_BATCH]
+            hit[sel], clearance[sel] = self._exact_kept(C[sel], R[sel], lin[sel], ang[sel], seq[sel], store,
+                                                        pending, pending_seq, bead_field, clearances)
         return hit, clearance
 
     def _exact_kept(self, C, R, lin, ang, seq, store: BeadStore, pending, pending_seq, bead_field: BeadField,

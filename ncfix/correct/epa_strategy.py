@@ -8,8 +8,9 @@ EPA"; ``ncfix.correct.epa`` does the geometry):
    at each rotated pose, combined with the previous by Lami's theorem) until ``Episode.free``
    (the exact end-pose test, with the store's beads and the programmed beads laid up to that
    level) accepts it, within Θ (--max-tilt). The hull model only steers; ``Episode.free`` judges.
-   A level with no free orientation found within Θ is left colliding (reported unresolved); it
-   keeps its programmed orientation unless a neighbour's ramp passes through it.
+   A level with no free orientation found within Θ is left colliding (reported unresolved) and
+   is pinned at its programmed orientation (a fixed offset 0 that is never moved): the ramps bend
+   around it or stop at it, within θ (CONTRACT.md: unresolved blocks are left as programmed).
 2. *Ramps.* Every orientation is an *offset*: a tangent vector (radians, 2 numbers) at the
    programmed orientation N0, in a frame carried along the programmed path (as the program turns
    where it turns by more than θ, by the minimal rotation elsewhere), so |offset| is the tilt from
@@ -30,9 +31,15 @@ EPA"; ``ncfix.correct.epa`` does the geometry):
    (``Episode.recheck``: sweeps and the solution's own beads); a level that fails there is tilted
    further (``bump_deg`` more per failure, its predecessor too when it fails again), and a block
    that did not collide and fails twice goes back to the program with its predecessor
-   (``_hold``), for up to ``ROUNDS`` rounds. The answer is the re-checked solution leaving the
-   fewest blocks colliding that makes no block collide that did not (except after a block left
-   colliding, as ``GraphStrategy``), else the program as written.
+   (``_hold``), for up to ``ROUNDS`` rounds. A level left colliding that a ramp passes through (a
+   dropped level; the level after one left colliding, whose move starts inside the collision, as
+   ``GraphStrategy``) is pinned at its programmed orientation too, and the ramps are laid out
+   again; blocks still colliding with a tilt when the rounds end are given up the same way
+   (pinned, ``GIVEUPS`` times, ``GIVEUP_ROUNDS`` more rounds each). The answer is the re-checked
+   solution leaving the fewest blocks colliding, every one of them as programmed, that makes no
+   block collide that did not (except after a block left colliding, as ``GraphStrategy``), else
+   the program as written. Pinning costs fixes: a level pinned inside a run of tilted levels
+   leaves those its ramps cannot reach within θ unresolved too (with reasons).
 
 Approximate by design (as ``ncfix.correct.epa``): the walk is greedy, so a free orientation may be
 missed, and the tilts are small but not the smallest. With ``--pivot point`` the head turns about
@@ -61,6 +68,10 @@ ROUNDS = 8
 PATIENCE = 2
 # Layouts (fill the offsets, test the ramp levels, fix the failing ones) over all rounds.
 MAX_LAYOUTS = 4 * ROUNDS
+# Times the blocks still colliding with a tilt are given up (left as programmed) and the rest laid
+# out again, with this many more rounds each.
+GIVEUPS = 2
+GIVEUP_ROUNDS = 2
 # Rounds of shrinking the step budgets where the measured steps exceed the limits.
 BUDGET_ROUNDS = 6
 # Times one layout may move a fixed level to settle a conflict before dropping it instead.
@@ -212,6 +223,7 @@ class _EpisodeSolver:
         self.end_free: set[int] = set()  # colliding only through the move into them (free end pose)
         self.hopeless: dict[int, str] = {}  # no free orientation within Θ along E
         self.dropped: dict[int, str] = {}  # free orientations, none within the steps of its neighbours
+        self.gave_up: dict[int, str] = {}  # still colliding after the rounds: left as programmed
         self.fails = np.zeros(L, dtype=np.int64)  # re-check failures per level
         self._free_cache: dict[tuple, bool] = {}
         self._settle_failed: set[tuple] = set()
@@ -227,13 +239,16 @@ class _EpisodeSolver:
         ep = self.ep
         self._required()
         best_words, best_bad = ep.programmed.copy(), ep.is_colliding.copy()
+        best_left = self._left_mask() & best_bad
         layouts = 0
         stale = 0  # rounds since the best fell
+        round_cap, layout_cap = ROUNDS, MAX_LAYOUTS
+        giveups = 0
         while True:
             d = self._layout()
             layouts += 1
             # Ramp levels that fail get their own tilt, and the layout is made again.
-            if layouts < MAX_LAYOUTS and self._test_ramps(d):
+            if layouts < layout_cap and self._test_ramps(d):
                 continue
             self.rounds += 1
             changed = np.linalg.norm(d, axis=1) > _TINY_RAD
@@ -246,32 +261,61 @@ class _EpisodeSolver:
                    f"{int(left.sum())} left, fixed {len(self.fixed)}, dropped {len(self.dropped)}, "
                    f"hopeless {len(self.hopeless)}, searches {self.searches}, new at {np.nonzero(bad & ~ep.is_colliding)[0].tolist()} "
                    f"(after a block left colliding: {np.nonzero(bad & ~ep.is_colliding & left)[0].tolist()})")
+            # Blocks left colliding are left as programmed (CONTRACT.md): one that a ramp passes
+            # through (a dropped level, a block whose move starts at one left colliding) is pinned
+            # at its programmed orientation for good, and the ramps are laid out around it again.
+            tilted = bad & left & changed
+            if tilted.any():
+                for l in np.nonzero(tilted)[0]:
+                    self._pin(int(l))
+                continue
             # Never hand back a solution that makes a block collide that did not, unless its move
-            # starts at a block left colliding (as GraphStrategy; the stage reports it).
-            if not (bad & ~ep.is_colliding & ~left).any() and bad.sum() < best_bad.sum():
-                best_words, best_bad, self.fallback = words, bad, False
+            # starts at a block left colliding (as GraphStrategy; the stage reports it), nor one
+            # whose colliding blocks are not as programmed.
+            if not (bad & ~ep.is_colliding & ~left).any() and not (bad & changed).any() and bad.sum() < best_bad.sum():
+                best_words, best_bad, best_left, self.fallback = words, bad, left & bad, False
                 stale = 0
             elif not self.fallback:  # patience runs once there is an answer to keep
                 stale += 1
             retry = bad & ~left
-            if not retry.any() or self.rounds >= ROUNDS or layouts >= MAX_LAYOUTS or stale >= PATIENCE:
-                break
+            if not retry.any() or self.rounds >= round_cap or layouts >= layout_cap or stale >= PATIENCE:
+                # Blocks still colliding with a tilt: give them up (pinned at the programmed
+                # orientation, reported unresolved) and lay the rest out around them.
+                stuck = retry & changed
+                if not stuck.any() or giveups >= GIVEUPS:
+                    break
+                giveups += 1
+                for l in np.nonzero(stuck)[0]:
+                    self._pin(int(l), self._reason(int(l), bad, left))
+                round_cap, layout_cap = self.rounds + GIVEUP_ROUNDS, layouts + 2 * GIVEUP_ROUNDS
+                stale = 0
+                continue
             self._bump(np.nonzero(retry)[0], d)
         rows = [int(ep.rows[i]) for i in np.nonzero(best_bad)[0]]
-        reasons = {int(ep.rows[i]): self._reason(i, best_bad) for i in np.nonzero(best_bad)[0]}
+        reasons = {int(ep.rows[i]): self._reason(i, best_bad, best_left) for i in np.nonzero(best_bad)[0]}
         return Solution(best_words, rows, reasons)
 
     def _left_mask(self) -> np.ndarray:
         out = np.zeros(self.L, dtype=bool)
-        out[list(self.hopeless) + list(self.dropped)] = True
+        out[list(self.hopeless) + list(self.dropped) + list(self.gave_up)] = True
         return out
 
-    def _reason(self, i: int, bad: np.ndarray) -> str:
+    def _pin(self, level: int, why: str | None = None) -> None:
+        """Fix a level at its programmed orientation for good (offset 0, never moved: ramps bend
+        around it or stop at it); ``why``: it is given up, left colliding for that reason."""
+        self._fix(level, np.zeros(2))
+        self.holds.add(level)
+        if why is not None:
+            self.gave_up[level] = why
+
+    def _reason(self, i: int, bad: np.ndarray, left: np.ndarray | None = None) -> str:
         if i in self.hopeless:
             return self.hopeless[i]
         if i in self.dropped:
             return self.dropped[i]
-        if i > 0 and bad[i - 1] and (i - 1 in self.hopeless or i - 1 in self.dropped):
+        if i in self.gave_up:
+            return self.gave_up[i]
+        if i > 0 and bad[i - 1] and left is not None and left[i - 1]:
             return "its move starts at the block before, which is left colliding"
         if self.fallback:
             return (f"no EPA tilt within {self.s.max_tilt:g}° (--max-tilt), ramped in "
@@ -279,7 +323,7 @@ class _EpisodeSolver:
                     "the episode is left as programmed")
         what = "the move into it" if i in self.end_free else "its sweep or the solution's own beads"
         return (f"still collides ({what}) after {self.rounds} rounds of larger EPA tilts within "
-                f"{self.s.max_tilt:g}° (--max-tilt)")
+                f"{self.s.max_tilt:g}° (--max-tilt); left as programmed")
 
     def _required(self) -> None:
         """Step 1: the EPA tilt of every colliding level, from its programmed orientation."""
@@ -290,6 +334,7 @@ class _EpisodeSolver:
                 what = f" ({', '.join(bodies)})" if bodies else ""
                 self.hopeless[l] = (f"no free orientation within {self.s.max_tilt:g}° (--max-tilt) found along "
                                     f"the EPA extraction direction{what}")
+                self._pin(l)  # left as programmed: the ramps go around it
             elif np.linalg.norm(found) > _TINY_RAD:
                 self._fix(l, found)
             else:  # free as programmed: only the move into it collides (the re-check tilts it)
