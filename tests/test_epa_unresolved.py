@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import io
-import re
 from pathlib import Path
 
 import numpy as np
@@ -15,25 +14,11 @@ from ncfix.geometry.mesh import load_head
 from ncfix.nc.post import post_program
 from ncfix.profiles import load_profile
 from ncfix.reference import ExactReference
+from test_epa_strategy import _poses  # motion blocks of an ijk program
 
 REPO = Path(__file__).resolve().parents[1]
 HEAD = REPO / "samples" / "deposition_head.stl"
 STANDOFF_MM = 6.0
-WORD = re.compile(r"([XYZIJK])(-?\d+(?:\.\d*)?)")
-
-
-def _poses(text: str):
-    lines, P, N = [], [], []
-    for i, line in enumerate(text.splitlines()):
-        words = dict(WORD.findall(line))
-        if set("XYZIJK") <= set(words):
-            lines.append(i + 1)
-            P.append([float(words[k]) for k in "XYZ"])
-            N.append([float(words[k]) for k in "IJK"])
-    N = np.array(N)
-    return lines, np.array(P), N / np.linalg.norm(N, axis=1, keepdims=True)
-
-
 def test_a_block_no_tilt_frees_stays_programmed_while_its_neighbours_are_fixed(monkeypatch, tmp_path):
     # A pass along x (10 mm apart, tip at z = 8); a wall whose lower edge the head's body (56 mm
     # wide, from 25 mm above the tip) meets 6 mm deep for the blocks from x = -70 to 0 (a tilt of
@@ -53,7 +38,7 @@ def test_a_block_no_tilt_frees_stays_programmed_while_its_neighbours_are_fixed(m
     report = ncfix.process(io.BytesIO(data), out, head=str(HEAD), part=[str(tmp_path / f"{n}.stl") for n in bodies],
                            bead_radius=0.0, strategy="epa", max_tilt=max_tilt, max_step=max_step, device="cpu")
     before, after = data.decode(), out.getvalue().decode()
-    lines, P0, N0 = _poses(before)
+    lines, P0, N0 = _poses(before.encode())
     line_of = {round(x): line for x, line in zip(P0[:, 0], lines) if line != lines[0]}  # not the approach
 
     assert report.exit_code == 1
@@ -76,7 +61,7 @@ def test_a_block_no_tilt_frees_stays_programmed_while_its_neighbours_are_fixed(m
 
     # The written program: tips stay, tilts within Θ, steps within θ, every block but the
     # unresolved ones free when checked exactly.
-    lines1, P1, N1 = _poses(after)
+    lines1, P1, N1 = _poses(after.encode())
     assert lines1 == lines
     C0, C1 = P0 + STANDOFF_MM * N0, P1 + STANDOFF_MM * N1
     assert np.abs(C1 - C0).max() < 2e-3
