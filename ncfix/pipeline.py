@@ -7,6 +7,8 @@ from collections.abc import Callable, Iterable, Iterator
 from itertools import islice
 from typing import BinaryIO, Protocol
 
+import numpy as np
+
 from ncfix.config import Options
 from ncfix.nc.chunk import Chunk
 from ncfix.nc.modal import Interpreter
@@ -36,13 +38,12 @@ def read_chunks(stream: BinaryIO, interpreter: Interpreter, lines_per_chunk: int
         lineno += len(lines)
 
 
-def program_box(stream: BinaryIO, profile: Profile, options: Options, source: str) -> "np.ndarray | None":
+def program_box(stream: BinaryIO, profile: Profile, options: Options, source: str) -> np.ndarray | None:
     """(2, 3) box of every programmed point P and tip C = P + h·N (arcs: their whole circle), read
     in a first pass over a seekable file (which is then rewound); None for a pipe or a program
     without a checkable motion block. The part grids are cropped to it (``build_stages``)."""
-    import numpy as np
-
     from ncfix.collision.path import PathChecker
+    from ncfix.collision.stage import MotionRows
 
     try:
         if not stream.seekable():
@@ -50,8 +51,8 @@ def program_box(stream: BinaryIO, profile: Profile, options: Options, source: st
         start = stream.tell()
     except (AttributeError, OSError, ValueError):
         return None
-    path = PathChecker.__new__(PathChecker)  # forward kinematics only
-    path.kin, path.is_vector = profile.kinematics, profile.is_vector
+    path = PathChecker(None, profile, options.standoff, options.pitch)  # forward kinematics only
+    motion = MotionRows(path, profile, options)
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     try:
         for chunk in read_chunks(stream, Interpreter(profile, source, options.deposit_codes)):
@@ -61,8 +62,7 @@ def program_box(stream: BinaryIO, profile: Profile, options: Options, source: st
             rows, words = rows[ok], words[ok]
             if not len(rows):
                 continue
-            tcp = chunk.tcp[rows] if profile.tcp == "program" else np.full(len(rows), profile.tcp == "always")
-            P, N, _ = path.forward(path.normalise(words), tcp)
+            P, N, _ = path.forward(path.normalise(words), motion.tcp(chunk, rows))
             pts = [P, P + options.standoff * N]
             arc = chunk.arc[rows]
             on_arc = np.isfinite(arc[:, 0])
@@ -103,8 +103,6 @@ def build_stages(options: Options, profile: Profile, report: Report, box=None) -
     report.details.append(model.summary())
     reach_box = None
     if box is not None:
-        import numpy as np
-
         # The head lies within rho of its tip; with --pivot point a tilted tip stays within h of P.
         rho = float(np.linalg.norm(head.mesh.vertices, axis=1).max())
         reach = rho + options.standoff + options.clearance + 2 * options.pitch

@@ -622,9 +622,7 @@ def query_pairs(tree: cKDTree, centers: np.ndarray, radii: np.ndarray) -> tuple[
         keep = found["v"] <= radii[group][found["i"]]
         qs.append(group[found["i"][keep]])
         ps.append(found["j"][keep].astype(np.int64))
-    q, p = np.concatenate(qs), np.concatenate(ps)
-    first = np.lexsort((p, q))  # in query order, as one pass gives them
-    return q[first], p[first]
+    return np.concatenate(qs), np.concatenate(ps)
 
 
 def bead_samples(start_mm: np.ndarray, end_mm: np.ndarray, spacing_mm: float,

@@ -79,9 +79,10 @@ class MoveHits:
 
 
 class PathChecker:
-    """Forward kinematics of words and the swept check of runs of moves against parts and beads."""
+    """Forward kinematics of words and the swept check of runs of moves against parts and beads
+    (``checker`` None: the kinematics only)."""
 
-    def __init__(self, checker: Checker, profile, standoff_mm: float, pitch_mm: float):
+    def __init__(self, checker: Checker | None, profile, standoff_mm: float, pitch_mm: float):
         self.checker = checker
         self.kin = profile.kinematics
         self.is_vector = profile.is_vector
@@ -142,13 +143,11 @@ class PathChecker:
         # Margin: how far any head point may be between this sample and the previous one.
         prev_C = np.where((k == 1)[:, None], Cs[row_of], np.roll(C, 1, axis=0))
         prev_R = np.where((k == 1)[:, None, None], Rs[row_of], np.roll(R, 1, axis=0))
-        step = np.linalg.norm(C - prev_C, axis=1)
+        prev_P = prev_N = None  # needed on arcs only
         if arcs.any():
-            on_arc = arcs[row_of]
             prev_P = np.where((k == 1)[:, None], Ps[row_of], np.roll(P, 1, axis=0))
             prev_N = np.where((k == 1)[:, None], Ns[row_of], np.roll(N, 1, axis=0))
-            step[on_arc] = (np.linalg.norm(P - prev_P, axis=1) + h * np.linalg.norm(N - prev_N, axis=1))[on_arc]
-        turn = rotation_angle(prev_R, R)
+        step, turn = self.margins(P, N, C, R, prev_P, prev_N, prev_C, prev_R, arcs[row_of])
         first_only = (k == 1) & ~known[row_of]
         step[first_only], turn[first_only] = 0.0, 0.0
         seq = seq0 + np.arange(total)
@@ -190,6 +189,15 @@ class PathChecker:
         dep_clear_rows = np.minimum.reduceat(dep_clear, first)
         hits = MoveHits(part_rows, dep_rows, dep_clear_rows, sample, C, R, total)
         return hits, seq0 + total
+
+    def margins(self, P, N, C, R, prev_P, prev_N, prev_C, prev_R, on_arc) -> tuple[np.ndarray, np.ndarray]:
+        """Sweep margins of samples from the sample before each: lin = |ΔC| (|ΔP| + h·|ΔN| on arcs,
+        module doc; prev_P / prev_N are read only there) and ang = the head's turn (rad)."""
+        lin = np.linalg.norm(C - prev_C, axis=1)
+        if on_arc.any():
+            alt = np.linalg.norm(P - prev_P, axis=1) + self.standoff_mm * np.linalg.norm(N - prev_N, axis=1)
+            lin[on_arc] = alt[on_arc]
+        return lin, rotation_angle(prev_R, R)
 
     def _along(self, moves: Moves, ws, we, row, t, arcs) -> np.ndarray:
         """Words at parameter t (m,) of moves ``row`` (m,): linear, the point along the arc on arcs."""
@@ -258,14 +266,10 @@ class Refiner:
         C = P + self.path.standoff_mm * N
         end = np.ones(len(t), dtype=bool)
         end[::parts + 1] = False  # the first of each group is the stretch's start, not a sample
-        prev = np.nonzero(end)[0] - 1
         cur = np.nonzero(end)[0]
-        lin = np.linalg.norm(C[cur] - C[prev], axis=1)
-        on_arc = self.arcs[rows[cur]]
-        if on_arc.any():
-            alt = np.linalg.norm(P[cur] - P[prev], axis=1) + self.path.standoff_mm * np.linalg.norm(N[cur] - N[prev], axis=1)
-            lin[on_arc] = alt[on_arc]
-        ang = rotation_angle(R[prev], R[cur])
+        prev = cur - 1
+        lin, ang = self.path.margins(P[cur], N[cur], C[cur], R[cur], P[prev], N[prev], C[prev], R[prev],
+                                     self.arcs[rows[cur]])
         sub = Refiner(self.path, self.moves, self.ws, self.we, self.arcs, rows[cur], t[prev], t[cur])
         return C[cur], R[cur], lin, ang, parent, sub
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from ncfix.nc.chunk import Chunk
 from ncfix.nc.emit import rewrite_line
+from ncfix.nc.lexer import code_of, word_spans
 from ncfix.nc.modal import MM_PER_INCH
 from ncfix.profiles import Profile
 
@@ -98,8 +99,6 @@ class Writer:
         """Words an absolute line leaves out whose carried-over value the output changed: letter →
         the programmed value (program units). A vector profile's block without any vector word
         keeps the previous vector, so all of them are restated; with some, the rest are 0."""
-        from ncfix.nc.lexer import code_of, word_spans
-
         said = {span.address.upper() for span in word_spans(code_of(chunk.lines[i].decode("latin-1").rstrip("\r\n")))}
         words = chunk.words[i]
         out: dict[str, float] = {}
