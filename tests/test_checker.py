@@ -580,3 +580,20 @@ def test_grid_lookups_agree_between_numpy_and_torch(meshes):
     a = grid.lower_bound_np(pts)
     b = grid.lower_bound(torch.as_tensor(pts)).numpy()
     assert np.allclose(a, b, atol=1e-12)
+
+
+def test_deposit_clearance_is_the_deepest_bead(bead_checker):
+    """A colliding pose reports the clearance of its deepest bead (the exact reference's minimum
+    over every bead it sees), not that of the first touching bead the test happened to find."""
+    beads = _wall_beads(0.5)
+    store = BeadStore(1.0)
+    store.add(beads)
+    C, R = _random_bead_poses(600, seed=21)
+    n = len(C)
+    hit, clearance = bead_checker.check_deposit(C, R, np.zeros(n), np.arange(n), store, np.zeros((0, 3)),
+                                                np.zeros(0, dtype=np.int64))
+    ref = bead_checker.reference
+    sel = np.nonzero(hit)[0][:60]
+    assert len(sel) > 20
+    exact = np.array([ref.bead_clearance(C[i], R[i], beads, 1.0) for i in sel])
+    assert np.allclose(clearance[sel], exact, atol=1e-9)

@@ -43,10 +43,10 @@ import numpy as np
 import trimesh
 
 from ncfix.collision.deposit import BeadField, BeadStore
+from ncfix.collision.exact_beads import BeadBuckets, first_bead_hits
 from ncfix.collision.grid import DistanceGrid, build_distance_grid
 from ncfix.collision.head import HeadModel, SphereTree, build_sphere_tree
-from ncfix.geometry.distance import winding_numbers
-from ncfix.geometry.frames import rotation_between
+from ncfix.geometry.near import NearSurface
 from ncfix.reference import ExactReference
 
 # Octree cell (mm) of the tree's lowest inner level: a few balls each.
@@ -69,11 +69,11 @@ GROUP_LEVELS_MM = (24.0, 6.0, 1.5)
 IDLE_CALLS = 8
 # Cells (mm) grouping beads in the exact deposit test of candidates (a cell cleared clears its beads).
 BEAD_CELL_MM = 4.0
-# Consecutive collinear beads tested as one capsule in the exact deposit test of candidates.
-CAPSULE_BEADS = 24
 # A sample that hits only with its sweep margin is tested again as finer samples, this deep
 # (path.Refiner: REFINE_PARTS samples a level): false alarms of the margin go, hits stay.
 REFINE_LEVELS = 2
+# Sequence number of beads every pose sees (the store's).
+ALWAYS_SEEN = np.iinfo(np.int64).min
 # Level of the tree whose failing nodes fetch the candidate beads of an undecided pose (~2 mm).
 CANDIDATE_LEVEL = 5
 
@@ -185,7 +185,7 @@ class Checker:
                                         tip_allowance_mm=self.tip_allowance_mm)
         self.stats = CheckerStats()
         self._idle_levels: dict = {}
-        self._pending_tree = None  # (pending beads, their cKDTree): built once per batch
+        self._store_beads = None  # (store state, its kept beads concatenated)
         if self.bead_radius_mm > 0:
             clipped = self.reference._bead_head
             # The head above the allowance, in the head frame, at the pitch (filters candidate beads).
@@ -195,6 +195,10 @@ class Checker:
             self.dep_tree = tree_tensors(build_sphere_tree(model.centers_mm[above], model.radii_mm[above],
                                                            LEAF_CELL_MM), self.device)
             self._head_triangles_clipped = np.asarray(clipped.triangles, dtype=np.float64)
+            # Exact bead tests: a bead's ball (radius + clearance + sweep margin, <= a pitch) against
+            # the clipped head's triangles near it.
+            self.near_head = NearSurface(self._head_triangles_clipped,
+                                         self.bead_radius_mm + self.clearance_mm + 1.5 * self.pitch_mm)
 
     # -- the sphere-tree test ----------------------------------------------------------------
     def _tensor(self, a, dtype=None):
@@ -414,9 +418,7 @@ class Checker:
         about a few tips (candidate batches). Per tip, the beads within the clipped head's reach
         are gathered once and grouped in BEAD_CELL_MM cells; the head grid's lower bound on the
         distance to the clipped head clears whole cells, then single beads, and the beads it
-        cannot clear go to coal (``_beads_touch``), a pose stopping at its first hit."""
-        import coal
-
+        cannot clear go to the exact test (``NearSurface``), a pose stopping at its first hit."""
         C = np.asarray(C, dtype=np.float64).reshape(-1, 3)
         R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
         seq = np.asarray(seq, dtype=np.int64).reshape(-1)
@@ -426,7 +428,6 @@ class Checker:
         ref = self.reference
         reach = float(np.linalg.norm(ref._bead_head.vertices, axis=1).max()) + need
         ta = self.tip_allowance_mm
-        sphere = coal.Sphere(float(need))
         if store.old is not None:  # retired beads: only their field decides (``_exact_deposit``)
             zero = np.zeros(n)
             free &= ~self._undecided_batched(self.dep_tree, store.old.lower_bound, C, R, zero, zero)
@@ -474,56 +475,13 @@ class Checker:
                 lbead = np.einsum("nji,nj->ni", R[part[pose]], B[bead] - C[part[pose]])
                 lb = self.head_grid.lower_bound_np(lbead)
                 near = (lb <= need) & (lbead[:, 2] + need > ta)
-                pose, bead, lbead = pose[near], bead[near], lbead[near]
-                self.stats.exact_bead_tests += len(pose)
-                lb = lb[near]
-                order = np.lexsort((bead, pose))
-                pose, bead, lbead, lb = pose[order], bead[order], lbead[order], lb[order]
-                bounds = np.concatenate([[0], np.nonzero(np.diff(pose))[0] + 1, [len(pose)]])
-                for a0, b0 in zip(bounds[:-1], bounds[1:]):
-                    if self._beads_touch(lbead[a0:b0], bead[a0:b0], lb[a0:b0], sphere, need):
-                        free[part[pose[a0]]] = False
+                pose, lbead, lb = pose[near], lbead[near], lb[near]
+                order = np.lexsort((lb, pose))  # the most suspect bead of a pose first
+                first, tested = self.near_head.first_touch(lbead[order], np.full(len(pose), need), lb[order] <= 0,
+                                                           pose[order], len(part))
+                self.stats.exact_bead_tests += tested
+                free[part[first >= 0]] = False
         return free
-
-    def _beads_touch(self, pts: np.ndarray, ids: np.ndarray, lb: np.ndarray, sphere, need: float) -> bool:
-        """Whether any bead sphere (head-frame centres pts (m, 3) in laying order, store ids (m,),
-        head-grid lower bounds lb (m,), radius ``need``) meets the clipped head, exactly. Runs of
-        consecutive collinear beads are tested first as one capsule (which holds their spheres);
-        only a capsule that touches is split into spheres."""
-        import coal
-
-        ref = self.reference
-        identity, eye = coal.Transform3s(), np.eye(3)
-        runs = np.split(np.arange(len(ids)), np.nonzero(np.diff(ids) != 1)[0] + 1)
-        for run in runs:
-            for a in range(0, len(run), CAPSULE_BEADS):
-                chunk = run[a:a + CAPSULE_BEADS]
-                p = pts[chunk]
-                if len(chunk) > 2 and lb[chunk].min() > 0:
-                    start, end = p[0], p[-1]
-                    axis = end - start
-                    length = float(np.linalg.norm(axis))
-                    off = p - start
-                    if length > 0:
-                        u = axis / length
-                        bent = np.linalg.norm(off - np.outer(off @ u, u), axis=1).max() > 1e-9
-                    else:
-                        bent = np.linalg.norm(off, axis=1).max() > 1e-9
-                    if not bent:
-                        rot = rotation_between(np.array([0.0, 0.0, 1.0]), u).reshape(3, 3) if length > 0 else eye
-                        res = coal.CollisionResult()
-                        capsule = coal.Capsule(float(need), length)
-                        if coal.collide(ref._bead_bvh, identity, capsule,
-                                        coal.Transform3s(rot, 0.5 * (start + end)), ref._creq, res) == 0:
-                            continue  # every centre is outside the head (lb > 0) and no sphere touches
-                for q, bound in zip(p, lb[chunk]):
-                    res = coal.CollisionResult()
-                    if coal.collide(ref._bead_bvh, identity, sphere, coal.Transform3s(eye, q), ref._creq, res) > 0:
-                        return True
-                    # A centre the head grid cannot place outside may lie inside the clipped head.
-                    if bound <= 0 and winding_numbers(q[None], self._head_triangles_clipped)[0] > 0.5:
-                        return True
-        return False
 
     # -- deposit -----------------------------------------------------------------------------
     def check_deposit(self, C: np.ndarray, R: np.ndarray, margin: np.ndarray, seq: np.ndarray,
@@ -627,18 +585,12 @@ class Checker:
 
     def _exact_kept(self, C, R, lin, ang, seq, store: BeadStore, pending, pending_seq, bead_field: BeadField,
                     clearances: bool = True):
-        """The exact test against the kept beads: candidate beads near the failing ~4 mm nodes,
-        the sequence filter, the allowance plane, the head grid, then the exact signed distance
-        (the clearance of each hit pose, at its first hit bead, unless not ``clearances``)."""
-        from scipy.spatial import cKDTree
-
-        from ncfix.collision.deposit import query_pairs
-
+        """The exact test against the kept beads (``exact_beads``): candidate beads near the failing
+        ~2 mm nodes, the sequence filter, the allowance plane, the head grid, then the exact test;
+        the clearance of each hit pose is that of its deepest bead (unless not ``clearances``)."""
         n = len(C)
         hit = np.zeros(n, dtype=bool)
         clearance = np.full(n, np.inf)
-        bead_r = self.bead_radius_mm
-        ta = self.tip_allowance_mm
         torch = self.torch
         pose, node = [], []
         for a in range(0, n, POSE_BATCH):
@@ -652,79 +604,38 @@ class Checker:
         pose, node = np.concatenate(pose), np.concatenate(node)
         if len(pose) == 0:
             return hit, clearance
+        order = np.argsort(pose, kind="stable")
+        pose, node = pose[order], node[order]
         tree = self.dep_tree
-        centers_local = tree.center[torch.as_tensor(node, device=tree.center.device)].cpu().numpy()
-        radii = tree.radius[torch.as_tensor(node, device=tree.center.device)].cpu().numpy()
-        reach = tree.reach[torch.as_tensor(node, device=tree.center.device)].cpu().numpy()
-        centers = C[pose] + np.einsum("nij,nj->ni", R[pose], centers_local)
-        query_r = radii + lin[pose] + ang[pose] * reach + bead_r + self.clearance_mm
-        poses, ids, pts, fresh = [], [], [], []
-        if store.count:
-            q, gid, p = store.within(centers, query_r)
-            poses.append(pose[q]), ids.append(gid), pts.append(p), fresh.append(np.zeros(len(q), dtype=bool))
-        if len(pending):
-            if self._pending_tree is None or self._pending_tree[0] is not pending:
-                self._pending_tree = (pending, cKDTree(pending))
-            q, idx = query_pairs(self._pending_tree[1], centers, query_r)
-            seen = pending_seq[idx] <= seq[pose[q]]
-            poses.append(pose[q][seen]), ids.append(idx[seen] + store.count), pts.append(pending[idx[seen]])
-            fresh.append(pending_seq[idx[seen]] == seq[pose[q][seen]])
-        if not poses:
-            return hit, clearance
-        pose = np.concatenate(poses)
-        if len(pose) == 0:
-            return hit, clearance
-        gid, pts, fresh = np.concatenate(ids), np.concatenate(pts), np.concatenate(fresh)
-        # One test per (pose, bead): a bead is found through several nodes.
-        _, first = np.unique(pose * (store.count + len(pending) + 1) + gid, return_index=True)
-        pose, pts, fresh = pose[first], pts[first], fresh[first]
-        local = np.einsum("nji,nj->ni", R[pose], pts - C[pose])  # R^T (b - C): head frame
-        # A head point at distance d from the tip moves at most lin + ang·d between samples; the
-        # points that can touch this bead are within |local| + r + clearance + margin of the tip.
-        # A bead laid at this very sample exists only once the head is here: no sweep margin.
-        swept = lin[pose] + ang[pose] * self.rho_mm
-        swept = np.minimum(swept, lin[pose] + ang[pose] * (np.linalg.norm(local, axis=1) + bead_r
-                                                           + self.clearance_mm + swept))
-        need = bead_r + self.clearance_mm + np.where(fresh, 0.0, swept)
-        # Beads wholly below the allowance plane cannot reach the checked head (exact).
-        keep = local[:, 2] + need > ta
-        # The head grid clears the rest where it can (a lower bound on the distance to the head).
-        lb = np.full(len(pose), -np.inf)
-        lb[keep] = self.head_grid.lower_bound_np(local[keep])
-        keep &= lb <= need
-        pose, local, need, lb = pose[keep], local[keep], need[keep], lb[keep]
-        if len(pose) == 0:
-            return hit, clearance
-        self.stats.exact_bead_poses += len(np.unique(pose))
-        # Exact test, most suspect bead first, a pose stops at its first hit: the bead is within
-        # ``need`` of the clipped head when a sphere of that radius touches its surface (coal) or
-        # the centre is inside it (winding number, only where the head grid allows it).
-        import coal
-
-        ref = self.reference
-        order = np.lexsort((lb, pose))
-        identity = coal.Transform3s()
-        eye = np.eye(3)
-        first_hit = {}
-        for i in order:
-            p = int(pose[i])
-            if p in first_hit:
-                continue
-            self.stats.exact_bead_tests += 1
-            res = coal.CollisionResult()
-            touch = coal.collide(ref._bead_bvh, identity, coal.Sphere(float(need[i])), coal.Transform3s(eye, local[i]),
-                                 ref._creq, res) > 0
-            if not touch and lb[i] <= 0:
-                touch = bool(winding_numbers(local[i][None], self._head_triangles_clipped)[0] > 0.5)
-            if touch:
-                first_hit[p] = i
-        if first_hit:
-            ps = np.fromiter(first_hit.keys(), dtype=np.int64)
-            bs = np.fromiter(first_hit.values(), dtype=np.int64)
-            hit[ps] = True
-            clearance[ps] = ref.signed_distance_to_clipped_head(local[bs]) - bead_r if clearances else -np.inf
+        at = torch.as_tensor(node, device=tree.center.device)
+        node_c, radii, reach = (t[at].cpu().numpy() for t in (tree.center, tree.radius, tree.reach))
+        # The region the failing nodes' query balls cover: only the beads there are bucketed.
+        centers = C[pose] + np.einsum("nij,nj->ni", R[pose], node_c)
+        query_r = (radii + lin[pose] + ang[pose] * reach + self.bead_radius_mm + self.clearance_mm)[:, None]
+        beads, bseq = self._bead_arrays(store, pending, pending_seq)
+        buckets = BeadBuckets(beads, bseq, (centers - query_r).min(axis=0), (centers + query_r).max(axis=0))
+        hit, depth, candidates, tested = first_bead_hits(
+            C, R, lin, ang, seq, pose, node_c, radii, reach, buckets, self.head_grid, self.near_head,
+            bead_r=self.bead_radius_mm, clearance=self.clearance_mm, allowance=self.tip_allowance_mm,
+            rho=self.rho_mm, deepest=clearances)
+        self.stats.exact_bead_poses += int((candidates > 0).sum())
+        self.stats.exact_bead_tests += tested
+        clearance[hit] = depth[hit] - self.bead_radius_mm if clearances else -np.inf
         return hit, clearance
 
+    def _bead_arrays(self, store: BeadStore, pending: np.ndarray, pending_seq: np.ndarray):
+        """Every exact bead a pose may see (the store's kept beads, then the pending ones) and the
+        sequence number from which each is seen (the store's: always)."""
+        key = (id(store), store.count, store.retired)
+        if self._store_beads is None or self._store_beads[0] != key:
+            levels = [pts for _, pts in store.trees()] if store.count else []
+            kept = np.concatenate(levels) if levels else np.zeros((0, 3))
+            self._store_beads = (key, kept)
+        kept = self._store_beads[1]
+        if len(pending) == 0:
+            return kept, np.full(len(kept), ALWAYS_SEEN, dtype=np.int64)
+        return (np.concatenate([kept, pending]),
+                np.concatenate([np.full(len(kept), ALWAYS_SEEN, dtype=np.int64), np.asarray(pending_seq, np.int64)]))
 
 def _expand(pose, start, count):
     """CSR expansion: each (pose, node) pair → (pose, child) for the node's ``count`` children from ``start``."""

@@ -1,0 +1,187 @@
+"""The exact deposit test of undecided poses, as one compiled loop (``Checker._exact_kept``).
+
+For each pose (tip C, rotation R, sweep margins lin / ang, sequence number seq) the sphere tree
+names its failing ~2 mm nodes; a bead can touch the clipped head only within
+``node radius + lin + ang·reach + bead radius + clearance`` of one of them. The loop visits, per
+failing node, the cells of a bucket grid of the beads around its ball, keeps each bead once per
+pose (the first node that reaches it), drops beads the pose does not see yet (laid at a later
+sample), beads wholly below the tip-allowance plane, and beads the head grid's lower bound clears;
+it then tests the rest exactly, smallest bound first, and stops at the pose's first touching bead
+(``ncfix.geometry.near``: exact point-triangle distances, a winding number where the bound allows
+the centre to be inside the head).
+
+The same decisions as the numpy formulation it replaces (k-d tree pairs, a dedupe, vectorised
+filters, a coal call per bead), without holding the ~10⁸ candidate pairs of a nozzle running among
+its own beads.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ncfix.geometry.near import NearSurface, _signed_distance, _touch
+
+# Bucket grid of the beads: cell edge (mm), doubled until the grid has at most MAX_CELLS cells.
+CELL_MM = 3.0
+MAX_CELLS = 1 << 22
+
+
+def _head_lb(x, y, z, dist, origin, pitch, box, margin):  # pragma: no cover - compiled
+    """DistanceGrid.lower_bound_np for one head-frame point."""
+    nx, ny, nz = dist.shape
+    ix = min(max(int(np.rint((x - origin[0]) / pitch)), 0), nx - 1)
+    iy = min(max(int(np.rint((y - origin[1]) / pitch)), 0), ny - 1)
+    iz = min(max(int(np.rint((z - origin[2]) / pitch)), 0), nz - 1)
+    cx, cy, cz = origin[0] + ix * pitch, origin[1] + iy * pitch, origin[2] + iz * pitch
+    off = np.sqrt((x - cx) ** 2 + (y - cy) ** 2 + (z - cz) ** 2)
+    gx = max(max(box[0, 0] - x, x - box[1, 0]), 0.0)
+    gy = max(max(box[0, 1] - y, y - box[1, 1]), 0.0)
+    gz = max(max(box[0, 2] - z, z - box[1, 2]), 0.0)
+    outside = np.sqrt(gx * gx + gy * gy + gz * gz)
+    return max(np.float64(dist[ix, iy, iz]) - off - margin, outside)
+
+
+def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
+            beads, bseq, cell_start, cell_beads, glo, gcell, gdims,
+            hdist, horigin, hpitch, hbox, hmargin,
+            tris, nlo, ncell, ndims, ncap, nstart, nlisted, slo, spitch, inside,
+            bead_r, clearance, allowance, rho, deepest):  # pragma: no cover - compiled
+    n = C.shape[0]
+    depth = np.full(n, np.inf)
+    hit = np.zeros(n, np.bool_)
+    candidates = np.zeros(n, np.int64)
+    tested = 0
+    mark = np.full(beads.shape[0], -1, np.int64)
+    buf = np.empty((beads.shape[0], 3))
+    buf_need = np.empty(beads.shape[0])
+    buf_lb = np.empty(beads.shape[0])
+    for p in range(n):
+        k = 0
+        c0, c1, c2 = C[p, 0], C[p, 1], C[p, 2]
+        for j in range(node_start[p], node_start[p + 1]):
+            wx = c0 + R[p, 0, 0] * node_c[j, 0] + R[p, 0, 1] * node_c[j, 1] + R[p, 0, 2] * node_c[j, 2]
+            wy = c1 + R[p, 1, 0] * node_c[j, 0] + R[p, 1, 1] * node_c[j, 1] + R[p, 1, 2] * node_c[j, 2]
+            wz = c2 + R[p, 2, 0] * node_c[j, 0] + R[p, 2, 1] * node_c[j, 1] + R[p, 2, 2] * node_c[j, 2]
+            q = node_r[j] + lin[p] + ang[p] * node_reach[j] + bead_r + clearance
+            q2 = q * q
+            x0 = max(int(np.floor((wx - q - glo[0]) / gcell)), 0)
+            x1 = min(int(np.floor((wx + q - glo[0]) / gcell)), gdims[0] - 1)
+            y0 = max(int(np.floor((wy - q - glo[1]) / gcell)), 0)
+            y1 = min(int(np.floor((wy + q - glo[1]) / gcell)), gdims[1] - 1)
+            z0 = max(int(np.floor((wz - q - glo[2]) / gcell)), 0)
+            z1 = min(int(np.floor((wz + q - glo[2]) / gcell)), gdims[2] - 1)
+            for x in range(x0, x1 + 1):
+                for y in range(y0, y1 + 1):
+                    for z in range(z0, z1 + 1):
+                        cidx = (x * gdims[1] + y) * gdims[2] + z
+                        for m in range(cell_start[cidx], cell_start[cidx + 1]):
+                            b = cell_beads[m]
+                            if mark[b] == p or bseq[b] > seq[p]:
+                                continue
+                            dx, dy, dz = beads[b, 0] - wx, beads[b, 1] - wy, beads[b, 2] - wz
+                            if dx * dx + dy * dy + dz * dz > q2:
+                                continue
+                            mark[b] = p
+                            # R^T (b - C): the head frame
+                            ex, ey, ez = beads[b, 0] - c0, beads[b, 1] - c1, beads[b, 2] - c2
+                            lx = R[p, 0, 0] * ex + R[p, 1, 0] * ey + R[p, 2, 0] * ez
+                            ly = R[p, 0, 1] * ex + R[p, 1, 1] * ey + R[p, 2, 1] * ez
+                            lz = R[p, 0, 2] * ex + R[p, 1, 2] * ey + R[p, 2, 2] * ez
+                            # A head point at distance d from the tip moves at most lin + ang·d
+                            # between samples; a bead laid at this very sample gets no margin.
+                            need = bead_r + clearance
+                            if bseq[b] != seq[p]:
+                                swept = lin[p] + ang[p] * rho
+                                near = lin[p] + ang[p] * (np.sqrt(lx * lx + ly * ly + lz * lz) + need + swept)
+                                need += min(swept, near)
+                            if lz + need <= allowance:
+                                continue  # wholly below the allowance plane
+                            lb = _head_lb(lx, ly, lz, hdist, horigin, hpitch, hbox, hmargin)
+                            if lb > need:
+                                continue
+                            buf[k, 0], buf[k, 1], buf[k, 2] = lx, ly, lz
+                            buf_need[k] = need
+                            buf_lb[k] = lb
+                            k += 1
+        candidates[p] = k
+        if k == 0:
+            continue
+        order = np.argsort(buf_lb[:k], kind="mergesort")
+        for t in range(k):
+            i = order[t]
+            tested += 1
+            if _touch(buf[i, 0], buf[i, 1], buf[i, 2], buf_need[i], buf_lb[i] <= 0.0, tris, nlo, ncell, ndims,
+                      ncap, nstart, nlisted, slo, spitch, inside):
+                hit[p] = True
+                if deepest:  # the pose's clearance: the deepest of its candidates (lb > 0: at least lb)
+                    best = np.inf
+                    for u in range(k):
+                        v = order[u]
+                        if buf_lb[v] > 0.0 and buf_lb[v] >= best:
+                            break
+                        best = min(best, _signed_distance(buf[v, 0], buf[v, 1], buf[v, 2], buf_lb[v] > 0.0, tris, nlo,
+                                                          ncell, ndims, ncap, nstart, nlisted, slo, spitch, inside))
+                    depth[p] = best
+                break
+    return hit, depth, candidates, tested
+
+
+try:
+    from numba import njit as _njit
+
+    _head_lb = _njit(cache=True, nogil=True)(_head_lb)
+    _kernel = _njit(cache=True, nogil=True)(_kernel)
+except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
+    pass
+
+
+class BeadBuckets:
+    """Beads (the store's exact ones and the window's pending ones, with the sequence number from
+    which each is seen: -1 = always) in a bucket grid over the region a batch of queries covers."""
+
+    def __init__(self, beads: np.ndarray, seq: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+        lo = np.maximum(np.asarray(lo, dtype=np.float64), beads.min(axis=0) if len(beads) else lo)
+        hi = np.minimum(np.asarray(hi, dtype=np.float64), beads.max(axis=0) if len(beads) else hi)
+        inside = np.nonzero((beads >= lo).all(axis=1) & (beads <= hi).all(axis=1))[0] if len(beads) else \
+            np.zeros(0, dtype=np.int64)
+        self.beads = np.ascontiguousarray(beads[inside])
+        self.seq = np.ascontiguousarray(np.asarray(seq, dtype=np.int64)[inside])
+        self.index = inside  # into the beads given
+        cell = CELL_MM
+        extent = np.maximum(hi - lo, 0.0) if len(inside) else np.zeros(3)
+        while np.prod(np.floor(extent / cell) + 1) > MAX_CELLS:
+            cell *= 2.0
+        self.lo, self.cell = lo, cell
+        self.dims = (np.floor(extent / cell) + 1).astype(np.int64)
+        if len(inside):
+            ijk = np.minimum(np.floor((self.beads - lo) / cell).astype(np.int64), self.dims - 1)
+            flat = (ijk[:, 0] * self.dims[1] + ijk[:, 1]) * self.dims[2] + ijk[:, 2]
+        else:
+            flat = np.zeros(0, dtype=np.int64)
+        self.cell_beads = np.argsort(flat, kind="stable").astype(np.int64)
+        counts = np.bincount(flat, minlength=int(np.prod(self.dims)))
+        self.cell_start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+
+
+def first_bead_hits(C, R, lin, ang, seq, node_pose, node_c, node_r, node_reach, buckets: BeadBuckets,
+                    head_grid, near: NearSurface, *, bead_r: float, clearance: float, allowance: float,
+                    rho: float, deepest: bool = True):
+    """Per pose (n): hit (bool), with ``deepest`` the smallest signed distance from a bead centre it
+    sees to the clipped head (+inf where free or not ``deepest``; minus the radius: its clearance),
+    the candidate beads it had after the filters, and the beads tested exactly (module doc).
+    node_pose (m,) ascending: the pose of each failing node; node_c (m, 3) head-frame centres,
+    node_r / node_reach (m,) radius and reach."""
+    n = len(C)
+    node_start = np.searchsorted(node_pose, np.arange(n + 1)).astype(np.int64)
+    f64 = np.float64
+    hit, depth, candidates, tested = _kernel(
+        np.ascontiguousarray(C, f64), np.ascontiguousarray(R, f64), np.ascontiguousarray(lin, f64),
+        np.ascontiguousarray(ang, f64), np.ascontiguousarray(seq, np.int64), node_start,
+        np.ascontiguousarray(node_c, f64), np.ascontiguousarray(node_r, f64), np.ascontiguousarray(node_reach, f64),
+        buckets.beads, buckets.seq, buckets.cell_start, buckets.cell_beads, buckets.lo, float(buckets.cell),
+        buckets.dims, head_grid.dist_mm, np.asarray(head_grid.origin_mm, f64), float(head_grid.pitch_mm),
+        np.ascontiguousarray(head_grid._box(), f64), float(head_grid.margin_mm),
+        near.triangles, near.lo, near.cell_mm, near.dims, near.cap_mm, near.start, near.listed, near.sign_lo,
+        near.sign_pitch, near.inside,
+        float(bead_r), float(clearance), float(allowance), float(rho), bool(deepest))
+    return hit, depth, candidates, int(tested)

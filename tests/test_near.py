@@ -1,0 +1,78 @@
+"""The compiled exact ball-touch and signed-distance tests against brute force (ncfix.geometry.near)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from ncfix.geometry.distance import point_mesh_distance, winding_numbers
+from ncfix.geometry.near import NearSurface, _signed_distance
+
+
+@pytest.fixture(scope="module")
+def solid():
+    """A closed, non-convex solid: a box with a cylinder bored through it, plus a sphere on top."""
+    box = trimesh.creation.box((40.0, 30.0, 20.0))
+    bore = trimesh.creation.cylinder(radius=6.0, height=50.0, sections=24)
+    cap = trimesh.creation.icosphere(subdivisions=2, radius=9.0)
+    cap.apply_translation((8.0, 0.0, 14.0))
+    mesh = box.difference(bore).union(cap)
+    assert mesh.is_volume
+    return np.asarray(mesh.triangles, dtype=np.float64)
+
+
+def _points(triangles, n, seed):
+    rng = np.random.default_rng(seed)
+    lo, hi = triangles.reshape(-1, 3).min(axis=0), triangles.reshape(-1, 3).max(axis=0)
+    pts = rng.uniform(lo - 4.0, hi + 4.0, size=(n, 3))
+    # and points close to the surface, on both sides
+    tri = triangles[rng.integers(0, len(triangles), n // 2)]
+    w = rng.dirichlet(np.ones(3), n // 2)
+    on = np.einsum("nk,nkj->nj", w, tri)
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    near = on + normal * rng.uniform(-0.6, 0.6, (n // 2, 1))
+    return np.concatenate([pts, near])
+
+
+@pytest.mark.parametrize("cap_mm, cell_mm", [(2.5, 2.0), (1.0, 0.7)])
+def test_touch_matches_brute_force(solid, cap_mm, cell_mm):
+    pts = _points(solid, 4000, seed=3)
+    rng = np.random.default_rng(4)
+    radii = rng.uniform(0.05, 3.5, len(pts))  # some above the cap: every triangle is read there
+    d = point_mesh_distance(pts, solid)
+    inside = winding_numbers(pts, solid) > 0.5
+    near = NearSurface(solid, cap_mm, cell_mm)
+    for check_inside in (True, False):
+        first, tested = near.first_touch(pts, radii, np.full(len(pts), check_inside), np.arange(len(pts)), len(pts))
+        truth = (d <= radii) | (inside & check_inside)
+        assert tested == len(pts)
+        assert ((first >= 0) == truth).all()
+        assert truth.sum() > 0.1 * len(pts) and (~truth).sum() > 0.1 * len(pts)
+
+
+def test_touch_stops_each_group_at_its_first_touching_ball(solid):
+    pts = _points(solid, 600, seed=5)
+    radii = np.full(len(pts), 1.0)
+    group = np.arange(len(pts)) // 15  # 60 groups of 15
+    d = point_mesh_distance(pts, solid)
+    inside = winding_numbers(pts, solid) > 0.5
+    touch = (d <= radii) | inside
+    first, _ = NearSurface(solid, 2.0).first_touch(pts, radii, np.ones(len(pts), bool), group, 60)
+    for g in range(60):
+        members = np.nonzero(group == g)[0]
+        hits = members[touch[members]]
+        assert first[g] == (hits[0] if len(hits) else -1)
+
+
+def test_signed_distance_matches_brute_force(solid):
+    pts = _points(solid, 3000, seed=7)
+    d = point_mesh_distance(pts, solid)
+    sd = np.where(winding_numbers(pts, solid) > 0.5, -d, d)
+    near = NearSurface(solid, 2.0)
+    got = np.array([_signed_distance(p[0], p[1], p[2], False, near.triangles, near.lo, near.cell_mm, near.dims,
+                                     near.cap_mm, near.start, near.listed, near.sign_lo, near.sign_pitch,
+                                     near.inside) for p in pts])
+    assert np.allclose(got, sd, atol=1e-9)
+    assert (sd < -1.0).sum() > 100 and (np.abs(sd) < 0.3).sum() > 100  # deep inside and at the surface
