@@ -303,3 +303,19 @@ def test_real_mold_and_head(tmp_path):
         result = model.tilt(tip, Z, minimal_rotation, is_free, max_tilt_deg=30.0, variant=variant)
         assert result.normal is not None and is_free(result.normal[None])[0]
         assert result.tilt_deg <= 8.0  # the smallest free tilt here is about 5°
+
+
+def test_beads_near_keeps_the_beads_within_a_radius_of_the_clipped_hull(tmp_path):
+    """The compiled filter keeps exactly the bead centres inside the clipped hull's box grown by
+    the radius and less than the radius outside each of its face planes (the numpy formulation)."""
+    model = EpaModel(cylinder_head(), [], cache_dir=tmp_path, bead_radius_mm=1.0, tip_allowance_mm=1.0)
+    rng = np.random.default_rng(8)
+    beads = rng.uniform(-15, 40, (5000, 3))
+    c = np.array([1.0, -2.0, 3.0])
+    r = rotation_from_z(np.array([0.3, 0.2, 1.0]) / np.linalg.norm([0.3, 0.2, 1.0]))
+    local = (beads - c) @ r
+    boxed = ((local > model._bead_lo - 1.0) & (local < model._bead_hi + 1.0)).all(axis=1)
+    inside = (local @ model._bead_normals.T - model._bead_offsets < 1.0).all(axis=1)
+    got = model._beads_near(c, r, beads)
+    assert 50 < len(got) < 4000
+    assert np.array_equal(got, beads[boxed & inside])

@@ -182,12 +182,10 @@ class EpaModel:
     def _beads_near(self, c: np.ndarray, r: np.ndarray, beads_mm: np.ndarray) -> np.ndarray:
         """Bead centres (k, 3) whose sphere may reach the clipped hull: within every face plane
         by less than the radius (this includes "above the tip allowance plane minus the radius")."""
-        beads = np.asarray(beads_mm, dtype=np.float64).reshape(-1, 3)
-        local = (beads - c) @ r
-        rad = self.bead_radius_mm
-        boxed = ((local > self._bead_lo - rad) & (local < self._bead_hi + rad)).all(axis=1)
-        signed = local[boxed] @ self._bead_normals.T - self._bead_offsets
-        return beads[boxed][(signed < rad).all(axis=1)]
+        beads = np.ascontiguousarray(beads_mm, dtype=np.float64).reshape(-1, 3)
+        keep = _within_hull(beads, np.ascontiguousarray(c, dtype=np.float64), np.ascontiguousarray(r, dtype=np.float64),
+                            self._bead_lo, self._bead_hi, self._bead_normals, self._bead_offsets, self.bead_radius_mm)
+        return beads[keep]
 
     # ---- tilt -----------------------------------------------------------------------------
 
@@ -358,3 +356,31 @@ def _first_free(
         tried += len(normals)
         widest = max(widest, float(angle_between_deg(n0, normals).max()))
     return None, tried, widest
+
+
+def _within_hull(beads, c, r, lo, hi, normals, offsets, rad):  # pragma: no cover - compiled
+    """(m,) bool: bead centres whose head-frame point R^T (b - c) lies in the hull's box grown by
+    rad and less than rad outside every face plane (a bead stops at the first plane it clears)."""
+    out = np.zeros(beads.shape[0], np.bool_)
+    for i in range(beads.shape[0]):
+        ex, ey, ez = beads[i, 0] - c[0], beads[i, 1] - c[1], beads[i, 2] - c[2]
+        x = r[0, 0] * ex + r[1, 0] * ey + r[2, 0] * ez
+        y = r[0, 1] * ex + r[1, 1] * ey + r[2, 1] * ez
+        z = r[0, 2] * ex + r[1, 2] * ey + r[2, 2] * ez
+        if not (lo[0] - rad < x < hi[0] + rad and lo[1] - rad < y < hi[1] + rad and lo[2] - rad < z < hi[2] + rad):
+            continue
+        inside = True
+        for f in range(normals.shape[0]):
+            if normals[f, 0] * x + normals[f, 1] * y + normals[f, 2] * z - offsets[f] >= rad:
+                inside = False
+                break
+        out[i] = inside
+    return out
+
+
+try:
+    from numba import njit as _njit
+
+    _within_hull = _njit(cache=True, nogil=True)(_within_hull)
+except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
+    pass
