@@ -69,3 +69,32 @@ def test_no_path_when_nothing_is_free():
     programmed, cands, free = obstacle_case()
     free[20] = False
     assert cheapest_path(cands, free, programmed, max_step_deg=2.0) is None
+
+
+def test_wide_steps_search_every_edge_and_banned_edges_are_avoided():
+    """With θ = 30° a level's free vertices can lie far from every free vertex of the level
+    before: the nearest-neighbour edges would find no path through them (the bathtub sample
+    left 56 blocks colliding so); the dense levels search every edge within θ. A banned edge
+    (a move found to collide) is never taken."""
+    from ncfix.correct.graph import LayeredGraph
+
+    grid = SphereGrid(1.0)
+    programmed = np.tile([0.0, 0.0, 1.0], (5, 1))
+    cands, valid = level_candidates(grid, programmed, 30.0)
+    tilt = angle_between_deg(cands, programmed[:, None, :])
+    x = cands[..., 0]
+    free = valid.copy()
+    # level 1: only tilts of 20-25° toward +x; level 2: only 20-25° toward -x (40-50° from level 1's)
+    free[1] &= (tilt[1] >= 20) & (tilt[1] <= 25) & (x[1] > 0.3)
+    free[2] &= (tilt[2] >= 0) & (tilt[2] <= 12) & (x[2] < -0.05)
+    free[[0, 4], 1:] = False
+    graph = LayeredGraph(cands, valid, programmed, 30.0)
+    path = graph.cheapest(free)
+    assert path is not None
+    N = cands[np.arange(5), path]
+    assert free[np.arange(5), path].all()
+    assert (angle_between_deg(N[1:], N[:-1]) <= 30.0 + 1e-9).all()
+    # ban the chosen move from level 1 to level 2: the next path avoids it
+    graph.ban(2, np.array([path[1]]), np.array([path[2]]))
+    again = graph.cheapest(free)
+    assert again is not None and (again[1], again[2]) != (path[1], path[2])

@@ -24,6 +24,8 @@ DEVIATION_WEIGHT = 0.2
 # the limit is θ (1-2°) this is every neighbour; only where the program itself turns by tens of
 # degrees between two blocks are farther neighbours dropped (fewer choices, never a wrong edge).
 NEIGHBOURS = 48
+# Levels whose step limit is wider than this (degrees) take every allowed source (``cheapest``).
+DENSE_ABOVE_DEG = 6.0
 
 
 class LayeredGraph:
@@ -48,6 +50,12 @@ class LayeredGraph:
         self.deviation = np.degrees(np.arccos(np.clip(
             np.einsum("lkj,lj->lk", self.candidates, programmed), -1.0, 1.0)))
         self.deviation_weight = float(deviation_weight)
+        self.limit = limit
+        self.turns = None if turns is None else np.asarray(turns, dtype=np.float64)
+        # Where the step limit is wide, the nearest ``neighbours`` sources would cut most edges
+        # off: those levels are searched densely, over the allowed vertices of a search.
+        self.dense = limit > DENSE_ABOVE_DEG
+        self.banned: dict[int, set[tuple[int, int]]] = {}
         # Per level l >= 1: for each vertex, up to ``neighbours`` sources at level l-1 and the angle.
         self.source: list[np.ndarray] = [np.zeros((k, 0), dtype=np.int64)]
         self.weight: list[np.ndarray] = [np.zeros((k, 0))]
@@ -80,6 +88,18 @@ class LayeredGraph:
             self.source.append(np.column_stack([source, np.where(ok0, 0, -1)]))
             self.weight.append(np.column_stack([weight, np.where(ok0, step0, np.inf)]))
 
+    def ban(self, level: int, sources: np.ndarray, targets: np.ndarray) -> None:
+        """Remove the edges from any of ``sources`` (vertices of level - 1) to any of ``targets``
+        (vertices of ``level``): moves found to collide (a lazy search's edge check)."""
+        targets = np.asarray(targets, dtype=np.int64)
+        if level <= 0 or len(targets) == 0:
+            return
+        pairs = self.banned.setdefault(level, set())
+        pairs.update((int(a), int(b)) for a in np.asarray(sources).reshape(-1) for b in targets)
+        weight = self.weight[level][targets]
+        weight[np.isin(self.source[level][targets], np.asarray(sources, dtype=np.int64))] = np.inf
+        self.weight[level][targets] = weight
+
     def cheapest(self, allowed: np.ndarray, penalty: np.ndarray | None = None) -> np.ndarray | None:
         """The cheapest sequence of allowed vertices from level 0's candidate 0 to the last level's.
 
@@ -95,17 +115,20 @@ class LayeredGraph:
         back = np.zeros((levels, k), dtype=np.int64)
         rows = np.arange(k)
         for level in range(1, levels):
-            src = self.source[level]
-            if src.shape[1] == 0:
-                return None
-            total = np.where(src >= 0, cost[np.maximum(src, 0)] + self.weight[level], np.inf)
-            pick = np.argmin(total, axis=1)
-            best = total[rows, pick]
+            if self.dense[level]:
+                best, back[level] = self._dense_step(level, cost, ok)
+            else:
+                src = self.source[level]
+                if src.shape[1] == 0:
+                    return None
+                total = np.where(src >= 0, cost[np.maximum(src, 0)] + self.weight[level], np.inf)
+                pick = np.argmin(total, axis=1)
+                best = total[rows, pick]
+                back[level] = src[rows, pick]
             cost = best + self.deviation_weight * self.deviation[level]
             if penalty is not None:
                 cost = cost + penalty[level]
             cost = np.where(ok[level], cost, np.inf)
-            back[level] = src[rows, pick]
             if not np.isfinite(cost).any():
                 return None
         if not np.isfinite(cost[0]):
@@ -114,6 +137,30 @@ class LayeredGraph:
         for level in range(levels - 1, 0, -1):
             path[level - 1] = back[level, path[level]]
         return path
+
+
+    def _dense_step(self, level: int, cost: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One level of the search over every edge between the reachable vertices of the level
+        before and the allowed vertices of this one: (best cost (K,), its source (K,))."""
+        k = ok.shape[1]
+        best, back = np.full(k, np.inf), np.zeros(k, dtype=np.int64)
+        src = np.flatnonzero(np.isfinite(cost) & self.valid[level - 1])
+        dst = np.flatnonzero(ok[level])
+        if len(src) == 0 or len(dst) == 0:
+            return best, back
+        sources = self.candidates[level - 1][src]
+        if self.turns is not None:
+            sources = sources @ self.turns[level].T
+        step = np.degrees(np.arccos(np.clip(self.candidates[level][dst] @ sources.T, -1.0, 1.0)))
+        total = np.where(step <= self.limit[level] * (1.0 + 1e-12), cost[src][None, :] + step, np.inf)
+        for a, b in self.banned.get(level, ()):
+            i, j = np.searchsorted(dst, b), np.searchsorted(src, a)
+            if i < len(dst) and dst[i] == b and j < len(src) and src[j] == a:
+                total[i, j] = np.inf
+        pick = np.argmin(total, axis=1)
+        best[dst] = total[np.arange(len(dst)), pick]
+        back[dst] = src[pick]
+        return best, back
 
 
 def cheapest_path(candidates: np.ndarray, free: np.ndarray, programmed: np.ndarray,

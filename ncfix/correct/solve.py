@@ -210,8 +210,10 @@ class GraphStrategy:
        tested, with the ``BATCH`` untested candidates nearest to each, and the search runs
        again, until the path is made of tested free vertices only. Then every untested vertex
        becomes eligible, for a last few rounds, in case the coarse test missed a narrow passage.
-    3. The path is re-checked whole (sweeps, its own beads); a vertex whose move fails there is
-       dropped and the search goes on.
+    3. The path is re-checked whole (sweeps, its own beads); the edges of a move that fails there
+       are removed (lazy edge evaluation: between the neighbourhoods of its two vertices), a
+       vertex whose moves fail from ``FAIL_SOURCES`` vertices before it is dropped, and the
+       search goes on.
 
     A colliding block may keep its programmed orientation at a cost ``UNRESOLVED_COST``: the path
     always exists (the programmed path is within the limits), and it leaves as few blocks
@@ -224,6 +226,7 @@ class GraphStrategy:
     MAX_ROUNDS = 200
     OPEN_ROUNDS = 3  # rounds with every untested vertex eligible, after the promising ones
     UNRESOLVED_COST = 1e4  # per block left colliding; far above any tilt or step cost
+    FAIL_SOURCES = 3  # a vertex whose moves fail from this many vertices before it is dropped
 
     def __init__(self, options):
         self.max_tilt = float(options.max_tilt)
@@ -245,7 +248,7 @@ class GraphStrategy:
         rows_l = np.arange(L)
         open_rounds = 0
         best = None
-        last_bad = np.zeros(L, dtype=bool)
+        fails: dict[tuple[int, int], set[int]] = {}  # (level, vertex) -> vertices before it whose moves failed
         for _round in range(self.MAX_ROUNDS):
             eligible = (state == 1) | ((state == 0) & (promising | (open_rounds > 0)))
             allowed = valid & eligible
@@ -272,20 +275,20 @@ class GraphStrategy:
                 state[np.nonzero(after_left)[0], 1:] = 2
                 continue
             if bad.any():
-                lv = np.nonzero(bad)[0]
-                state[lv, pick[lv]] = 2
-                # Its neighbours on the grid would sweep the same way: drop them with it.
-                for i in lv[pick[lv] != 0]:
-                    close = cands[i] @ cands[i, pick[i]] >= self.near_cos
-                    close[0] &= state[i, 0] != 1  # a free programmed orientation stays
-                    state[i, close] = 2
-                # A level failing again: its move, not only its end, is in the way; drop the
-                # start vertex too.
-                again = lv[last_bad[lv]]
-                again = again[(again > 0) & (pick[np.maximum(again - 1, 0)] != 0)]
-                state[again - 1, pick[again - 1]] = 2
-                last_bad[:] = False
-                last_bad[lv] = True
+                # The end poses were tested free: the moves into them (their sweeps, the path's own
+                # beads) are in the way. The edges between the two vertices' neighbourhoods on the
+                # grid go (they sweep the same way); a vertex whose moves fail from FAIL_SOURCES
+                # different vertices before it goes too (its own beads, not the way in).
+                for i in np.nonzero(bad)[0]:
+                    targets = self._near(cands, valid, i, pick[i])
+                    sources = self._near(cands, valid, i - 1, pick[i - 1]) if i > 0 else np.array([0])
+                    graph.ban(i + 1, sources, targets)
+                    if i == L - 1:  # or the move out of it, into the row after
+                        graph.ban(L + 1, targets, np.array([0]))
+                    fails.setdefault((int(i), int(pick[i])), set()).add(int(pick[i - 1]) if i > 0 else -1)
+                    if len(fails[(int(i), int(pick[i]))]) >= self.FAIL_SOURCES and not (pick[i] == 0 and
+                                                                                        state[i, 0] == 1):
+                        state[i, pick[i]] = 2
                 continue
             if best is None or left.sum() < best[1].sum():
                 best = (words, left)
@@ -310,6 +313,12 @@ class GraphStrategy:
                 f"a free orientation exists, but no path to it keeps every step within {self.max_step:g}° "
                 f"(--max-step) while the blocks around it stay free")
         return Solution(words, rows, reasons)
+
+    def _near(self, cands, valid, level: int, vertex: int) -> np.ndarray:
+        """The valid candidates of a level within 1.5 resolutions of one of them (itself included)."""
+        close = valid[level] & (cands[level] @ cands[level, vertex] >= self.near_cos)
+        close[vertex] = True
+        return np.flatnonzero(close)
 
     def _seed(self, ep: Episode, cands, valid, state) -> np.ndarray:
         """Test each level's candidates nearest to the coarse grid; (L, K) bool: untested
