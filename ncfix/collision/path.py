@@ -63,7 +63,10 @@ class MoveHits:
     """Per move: parts hit (n, n_parts), deposit hit (n,), the deposit clearance the exact test
     found (n,) (+inf where not tested), the sample that decides the reported clearance (n,)
     (the end pose when it collides, else the last colliding sample; -1 when free), and the
-    samples' tip C and rotation R (for the report's exact clearances)."""
+    samples' tip C and rotation R (for the report's exact clearances). When known: ``first`` (n,),
+    the index of each move's first sample (move i has samples first[i] .. first[i+1]-1), and
+    ``margin`` (n,), the largest sweep margin of its samples (mm: lin + ρ·ang; no head point is
+    farther than that from where it is at the sample, between the sample and the one before)."""
 
     part_hit: np.ndarray
     deposit_hit: np.ndarray
@@ -72,6 +75,8 @@ class MoveHits:
     C: np.ndarray
     R: np.ndarray
     samples: int
+    first: np.ndarray | None = None
+    margin: np.ndarray | None = None
 
     @property
     def any(self) -> np.ndarray:
@@ -108,14 +113,19 @@ class PathChecker:
                 P[sel], N[sel], R[sel] = self.kin.forward(words[sel], tcp=bool(flag))
         return P, N, R
 
-    def check(self, moves: Moves, store: BeadStore, seq0: int, *, commit: bool = True) -> tuple[MoveHits, int]:
+    def check(self, moves: Moves, store: BeadStore, seq0: int, *, commit: bool = True,
+              prior: np.ndarray | None = None) -> tuple[MoveHits, int]:
         """Check every move (end pose and sweep) against the parts and the beads laid before it.
 
         store : the beads of every earlier move; seq0 : the sequence number of the first sample.
         With ``commit`` the moves' beads go into the store; without, the store is left as it was
         (the beads are then checked as pending, with their sequence numbers).
+        prior : (m, 3) beads laid before the first move but not in the store (pending moves
+        before these; without ``commit`` only): every sample sees them, none as its own.
         Returns the hits and the sequence number after the last sample.
         """
+        if prior is not None and len(prior) and commit:
+            raise ValueError("prior beads are for checks without commit")
         ck = self.checker
         h = self.standoff_mm
         ws, we, tcp, known = moves.w_start, moves.w_end, moves.tcp, moves.known_start
@@ -150,6 +160,7 @@ class PathChecker:
         step, turn = self.margins(P, N, C, R, prev_P, prev_N, prev_C, prev_R, arcs[row_of])
         first_only = (k == 1) & ~known[row_of]
         step[first_only], turn[first_only] = 0.0, 0.0
+        margin = np.maximum.reduceat(step + ck.rho_mm * turn, first) if total else np.zeros(len(moves))
         seq = seq0 + np.arange(total)
         # Distances between consecutive samples of the array (whatever the moves), for groups.
         chain_lin = np.zeros(total)
@@ -160,6 +171,10 @@ class PathChecker:
         cum_lin, cum_ang = np.cumsum(chain_lin), np.cumsum(chain_ang)
 
         pend, pend_seq = self._beads(moves, ws, Ps, Pe, m, first, seq0)
+        if prior is not None and len(prior) and ck.bead_radius_mm > 0:
+            # Laid before sample seq0: seen by every sample, never fresh; first in laying order.
+            pend = np.concatenate([np.asarray(prior, dtype=np.float64).reshape(-1, 3), pend])
+            pend_seq = np.concatenate([np.full(len(prior), seq0 - 1, dtype=np.int64), pend_seq])
         refine = Refiner(self, moves, ws, we, arcs, row_of, (k - 1) / m[row_of], t)
         part_hit = ck.sweep_parts(C, R, step, turn, cum_lin, cum_ang, move_of=row_of, refine=refine)
         dep_hit = np.zeros(total, dtype=bool)
@@ -187,7 +202,7 @@ class PathChecker:
         part_rows = np.logical_or.reduceat(part_hit, first, axis=0) if total else part_hit[:0]
         dep_rows = np.logical_or.reduceat(dep_hit, first)
         dep_clear_rows = np.minimum.reduceat(dep_clear, first)
-        hits = MoveHits(part_rows, dep_rows, dep_clear_rows, sample, C, R, total)
+        hits = MoveHits(part_rows, dep_rows, dep_clear_rows, sample, C, R, total, first, margin)
         return hits, seq0 + total
 
     def margins(self, P, N, C, R, prev_P, prev_N, prev_C, prev_R, on_arc) -> tuple[np.ndarray, np.ndarray]:

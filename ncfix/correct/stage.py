@@ -16,6 +16,18 @@ into chunks or windows:
    and its own beads, and becomes final. Detection resumes after it.
 
 ``ramp`` = ⌈Θ/θ⌉ + 1 blocks: enough to tilt from the programmed orientation to Θ in steps of θ.
+
+Detection is kept per row (``Detected``) and reused. A row's result is decided sample by sample
+(a sample collides when its exact test says so; the bounds only choose which samples get an
+exact test), so it depends only on its own move (the words of the row before and its own, its
+flags), the parts, and the beads within reach of its head at its samples (the store and the
+pending beads of the rows before it and its own). An episode changes the words of some of its
+rows: the moves that start or end at a changed row are checked again (their words differ), and
+so is every row whose head (the deposit tree's balls, at every sample and at the sweep start)
+came within its reach of a bead those moves laid, before or after the change (``_forget``). The
+rest keeps its result: the next detection checks only the runs of rows it cannot reuse, each
+with the pending beads of the rows before it (``PathChecker.check`` ``prior``). Beads the store
+retires change what every row sees: nothing is reused across that.
 """
 
 from __future__ import annotations
@@ -26,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ncfix.collision.checker import Checker
-from ncfix.collision.deposit import BeadStore
+from ncfix.collision.deposit import BeadField, BeadStore
 from ncfix.collision.path import MoveHits, Moves, PathChecker
 from ncfix.collision.stage import MotionRows, check_placement
 from ncfix.geometry.frames import angle_between_deg
@@ -62,8 +74,54 @@ class Rows:
         return Rows(*(getattr(self, f)[count:] for f in self.__dataclass_fields__))
 
 
+# Runs of rows to check again that are at most this many reusable rows apart are checked as one
+# (fewer calls; the rows between get the same result again).
+MERGE_GAP = 4
+
+
+@dataclass
+class Detected:
+    """The last detection of each row of the table (aligned with ``Rows``) and what it saw: the
+    words of its sweep start and end, its poses (samples and sweep start) and their largest
+    sweep margin, and the box of the deposit tree's balls at those poses (world mm)."""
+
+    valid: np.ndarray  # (n,) bool: the result below is the row's current one (until words change)
+    start: np.ndarray  # (n, k) words of the sweep start used (as ``Moves.w_start``)
+    end: np.ndarray  # (n, k)
+    lo: np.ndarray  # (n, 3) head box
+    hi: np.ndarray  # (n, 3)
+    margin: np.ndarray  # (n,) MoveHits.margin
+    part_hit: np.ndarray  # (n, n_parts) MoveHits.part_hit
+    deposit_hit: np.ndarray  # (n,)
+    deposit_clearance: np.ndarray  # (n,)
+    has_sample: np.ndarray  # (n,) bool: MoveHits.sample >= 0
+    C: np.ndarray  # (n, 3) tip of the deciding sample
+    R: np.ndarray  # (n, 3, 3) its rotation
+    poses: list  # per row: (tips (m, 3), rotations (m, 3, 3)) of its samples and sweep start, or None
+
+    @classmethod
+    def blank(cls, n: int, k: int, parts: int) -> "Detected":
+        nan = np.full((n, k), np.nan)
+        box = np.full((n, 3), np.nan)
+        return cls(np.zeros(n, dtype=bool), nan, nan.copy(), box, box.copy(), np.zeros(n),
+                   np.zeros((n, parts), dtype=bool), np.zeros(n, dtype=bool), np.full(n, np.inf),
+                   np.zeros(n, dtype=bool), np.zeros((n, 3)), np.tile(np.eye(3), (n, 1, 1)), [None] * n)
+
+    def append(self, other: "Detected") -> "Detected":
+        return Detected(*(getattr(self, f) + getattr(other, f) if f == "poses"
+                          else np.concatenate([getattr(self, f), getattr(other, f)])
+                          for f in self.__dataclass_fields__))
+
+    def drop(self, count: int) -> "Detected":
+        return Detected(*(getattr(self, f)[count:] for f in self.__dataclass_fields__))
+
+
 class CorrectStage:
     """Pipeline stage: checks every motion block and rewrites the colliding ones (module doc)."""
+
+    # Reuse detection results where nothing they depend on changed (module doc); False checks
+    # every row again at every detection (the reference the reuse is tested against).
+    REUSE_DETECTION = True
 
     def __init__(self, checker: Checker, profile, options, report, strategy, placed_parts=()):
         self.checker = checker
@@ -85,6 +143,10 @@ class CorrectStage:
         self.prev_words: np.ndarray | None = None  # last final row (sweep start of the next)
         self.prev_programmed: np.ndarray | None = None
         self.samples = 0
+        self.checked_rows = 0  # rows detection checked (reused ones not counted)
+        self.detected = Detected.blank(0, len(profile.kinematics.letters), len(checker.parts))
+        self.retired_seen = 0  # store.retired when the cached results were found
+        self.head_corners = _head_corners(checker)
 
     # -- stage protocol ------------------------------------------------------------------------
     def push(self, chunk):
@@ -100,6 +162,8 @@ class CorrectStage:
                        chunk.first_lineno + kept.astype(np.int64), moves.w_end.copy(), moves.w_end.copy(),
                        moves.tcp, moves.known_start, moves.deposit, moves.arc)
             self.rows = self.rows.append(new)
+            self.detected = self.detected.append(Detected.blank(len(kept), self.rows.words.shape[1],
+                                                                len(self.checker.parts)))
         self._advance(end=False)
         return self._release()
 
@@ -123,6 +187,7 @@ class CorrectStage:
             out.append(self.held.pop(0))
             count = int(np.searchsorted(self.rows.chunk, serial, side="right"))
             self.rows = self.rows.drop(count)
+            self.detected = self.detected.drop(count)
             self.final -= count
             self.first_serial += 1
         return out
@@ -142,6 +207,9 @@ class CorrectStage:
         moves = self._moves(self.final, b)
         self.store.add(self.path.bead_points(moves))
         self._trace(self.final, b)
+        d = self.detected  # final rows are not detected again: their poses can go
+        d.valid[self.final:b] = False
+        d.poses[self.final:b] = [None] * (b - self.final)
         self.prev_words = self.rows.words[b - 1].copy()
         self.prev_programmed = self.rows.programmed[b - 1].copy()
         self.final = b
@@ -190,14 +258,131 @@ class CorrectStage:
                 first, last = max(self.final, f - self.ramp), min(n - 1, e + self.ramp)
                 entries = self._collision_entries(colliding[colliding <= e], hits)
                 self._commit(first)
+                upto = min(n, last + 2)  # the row after the episode starts at its last level
+                before = self._moves(first, upto)
+                before.w_end = before.w_end.copy()  # a view of the table, which _apply rewrites
                 self._solve(first, last, entries)
+                self._forget(before, first, upto)
                 self._commit(last + 1)
                 break
 
     def _detect(self, a: int, b: int) -> MoveHits:
-        hits, _ = self.path.check(self._moves(a, b), self.store, 0, commit=False)
-        self.samples += hits.samples
-        return hits
+        """Detection of rows a..b-1: the rows whose result cannot be reused are checked (runs of
+        them, each with the pending beads of the rows a.. before it), the others keep theirs."""
+        if not self.REUSE_DETECTION:
+            hits, _ = self.path.check(self._moves(a, b), self.store, 0, commit=False)
+            self.samples += hits.samples
+            self.checked_rows += b - a
+            return hits
+        d = self.detected
+        if self.store.retired != self.retired_seen:  # the beads every row sees changed
+            d.valid[:] = False
+            self.retired_seen = self.store.retired
+        moves = self._moves(a, b)
+        ok = d.valid[a:b] & _same(d.start[a:b], moves.w_start) & _same(d.end[a:b], moves.w_end)
+        d.valid[a:b] = ok
+        prior, covered = [], a  # pending beads of rows a .. covered-1
+        samples = 0
+        for s, e in _runs(~ok, MERGE_GAP):
+            s, e = a + s, a + e
+            if s > covered:
+                prior.append(self.path.bead_points(self._moves(covered, s)))
+                covered = s
+            pts = np.concatenate(prior) if prior else None
+            hits, _ = self.path.check(self._moves(s, e), self.store, 0, commit=False, prior=pts)
+            samples += hits.samples
+            self.checked_rows += e - s
+            self._remember(s, e, hits)
+        self.samples += samples
+        n = b - a
+        sample = np.where(d.has_sample[a:b], np.arange(n), -1)
+        return MoveHits(d.part_hit[a:b].copy(), d.deposit_hit[a:b].copy(), d.deposit_clearance[a:b].copy(),
+                        sample, d.C[a:b].copy(), d.R[a:b].copy(), samples)
+
+    def _remember(self, a: int, b: int, hits: MoveHits) -> None:
+        """Keep the detection of rows a..b-1 (``hits``, from a check of exactly these moves)."""
+        d = self.detected
+        moves = self._moves(a, b)
+        rows = np.arange(a, b)
+        d.start[rows], d.end[rows] = moves.w_start, moves.w_end
+        d.part_hit[rows], d.deposit_hit[rows] = hits.part_hit, hits.deposit_hit
+        d.deposit_clearance[rows] = hits.deposit_clearance
+        has = hits.sample >= 0
+        d.has_sample[rows] = has
+        d.C[rows[has]], d.R[rows[has]] = hits.C[hits.sample[has]], hits.R[hits.sample[has]]
+        d.margin[rows] = hits.margin
+        # The poses of each move: its samples, and its sweep start where that is known.
+        known = moves.known_start
+        Cs, Rs = np.full((b - a, 3), np.nan), np.tile(np.eye(3), (b - a, 1, 1))
+        if known.any():
+            Ps, Ns, Rs[known] = self.path.forward(moves.w_start[known], moves.tcp[known])
+            Cs[known] = Ps + self.path.standoff_mm * Ns
+        ends = np.append(hits.first[1:], len(hits.C))
+        for i, row in enumerate(rows):
+            C, R = hits.C[hits.first[i]:ends[i]], hits.R[hits.first[i]:ends[i]]
+            if known[i]:
+                C, R = np.vstack([Cs[i:i + 1], C]), np.concatenate([Rs[i:i + 1], R])
+            d.poses[row] = (C, R)
+            if self.head_corners is not None:
+                lo, hi = _boxes(C, R, self.head_corners)
+                d.lo[row], d.hi[row] = lo.min(axis=0), hi.max(axis=0)
+        d.valid[rows] = True
+
+    def _reach_mm(self, rows: np.ndarray) -> np.ndarray:
+        """How far (mm) beyond the deposit tree's balls bead material can be and still change the
+        detection of rows: a sample's exact test looks within the clearance and its sweep margin
+        of the clipped head (which the balls cover); its finer samples lie within that margin and
+        add their own (smaller) one: twice the row's largest margin, and two pitches more.
+
+        Not counted: the reach of the bounds (groups of samples up to GROUP_LEVELS_MM long, the
+        bead field's cells and box). They do not decide a sample, they only choose which samples
+        get an exact test; that choice can change the deposit clearance a colliding row reports
+        (the smallest of its tested hits), but it changes with where a check starts as well (the
+        groups are counted from the first sample of a check), so no reach would pin it."""
+        return 2.0 * self.detected.margin[rows] + 2.0 * self.checker.pitch_mm + self.checker.clearance_mm
+
+    def _forget(self, before: Moves, first: int, end: int) -> None:
+        """After an episode rewrote rows of first..end-1: forget the detection of the rows whose
+        head came within their reach (``_reach_mm``) of a bead of a changed move, as laid before
+        or after the change (the changed moves themselves have other words now: checked again).
+        The boxes of the head's balls sort most rows out; the rest are tested as the checker tests
+        poses against beads, with a field of those beads only (a lower bound: conservative)."""
+        if not self.REUSE_DETECTION:
+            return
+        after = self._moves(first, end)
+        changed = ~(_same(before.w_start, after.w_start) & _same(before.w_end, after.w_end))
+        if not changed.any() or not after.deposit[changed].any() or self.head_corners is None:
+            return
+        old, new = self.path.bead_points(_take(before, changed)), self.path.bead_points(_take(after, changed))
+        beads = np.concatenate([old, new])
+        if len(beads) == 0:
+            return
+        d = self.detected
+        ck = self.checker
+        rows = end - 1 + np.nonzero(d.valid[end - 1:])[0]  # the rows before become final now
+        reach = self._reach_mm(rows) + ck.bead_radius_mm  # from a ball to a bead's centre
+        gap = np.maximum(np.maximum(d.lo[rows] - beads.max(axis=0), beads.min(axis=0) - d.hi[rows]), 0.0)
+        near = np.einsum("ri,ri->r", gap, gap) <= reach ** 2  # near the beads' box
+        rows, reach = rows[near], reach[near]
+        near = np.zeros(len(rows), dtype=bool)
+        step = max(1, (1 << 20) // len(beads))  # rows per batch of (row, bead) gaps
+        for a in range(0, len(rows), step):
+            sl = slice(a, a + step)
+            gap = np.maximum(np.maximum(d.lo[rows[sl], None, :] - beads[None], beads[None] - d.hi[rows[sl], None, :]),
+                             0.0)
+            near[sl] = (np.einsum("rbi,rbi->rb", gap, gap) <= reach[sl, None] ** 2).any(axis=1)
+        rows = rows[near]
+        if len(rows) == 0:
+            return
+        bead_field = BeadField(ck.bead_radius_mm, ck.pitch_mm)
+        bead_field.add(old)
+        bead_field.add(new)
+        count = np.array([len(d.poses[r][0]) for r in rows])
+        C = np.concatenate([d.poses[r][0] for r in rows])
+        R = np.concatenate([d.poses[r][1] for r in rows])
+        lin = np.repeat(self._reach_mm(rows), count)
+        touched = ck._undecided_batched(ck.dep_tree, bead_field.lower_bound, C, R, lin, np.zeros(len(C)))
+        d.valid[rows[np.logical_or.reduceat(touched, np.cumsum(count) - count)]] = False
 
     def _solve(self, first: int, last: int, collided: dict[int, dict]) -> None:
         """Solve the episode (levels first..last), record its collisions, apply its words."""
@@ -295,3 +480,42 @@ class CorrectStage:
 
 def _finite(value: float) -> float | None:
     return round(float(value), 4) if math.isfinite(value) else None
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n,) bool: rows of words (n, k) that are equal, NaN equal to NaN."""
+    return np.all((a == b) | (np.isnan(a) & np.isnan(b)), axis=1)
+
+
+def _runs(mask: np.ndarray, gap: int) -> list[tuple[int, int]]:
+    """[start, end) runs of True in mask; runs at most ``gap`` False apart are one."""
+    idx = np.nonzero(mask)[0]
+    if len(idx) == 0:
+        return []
+    cut = np.nonzero(np.diff(idx) > gap + 1)[0]
+    starts = np.concatenate([[idx[0]], idx[cut + 1]])
+    ends = np.concatenate([idx[cut], [idx[-1]]]) + 1
+    return list(zip(starts.tolist(), ends.tolist()))
+
+
+def _take(moves: Moves, sel: np.ndarray) -> Moves:
+    return Moves(moves.w_start[sel], moves.w_end[sel], moves.tcp[sel], moves.known_start[sel], moves.deposit[sel],
+                 None if moves.arc is None else moves.arc[sel])
+
+
+def _head_corners(checker: Checker) -> np.ndarray | None:
+    """(8, 3) corners of a head-frame box holding the balls of the checker's deposit tree (the
+    head above the tip allowance: all that beads are tested against); None without beads."""
+    tree = getattr(checker, "dep_tree", None)
+    if tree is None or checker.bead_radius_mm <= 0:
+        return None
+    start = int(tree.level_start[-2])  # the balls
+    c, r = tree.center.cpu().numpy()[start:], tree.radius.cpu().numpy()[start:]
+    lo, hi = (c - r[:, None]).min(axis=0), (c + r[:, None]).max(axis=0)
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+
+def _boxes(C: np.ndarray, R: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World boxes (n, 3) lo and hi of the head-frame box ``corners`` at poses (tip C, rotation R)."""
+    w = C[:, None, :] + np.einsum("nij,kj->nki", R, corners)
+    return w.min(axis=1), w.max(axis=1)
