@@ -1,0 +1,205 @@
+"""Every bundled sample fixed by every strategy, checked as issue #5 and #6 ask (heavy):
+
+- lossless: the same number of lines, and the lines that differ are exactly the report's changes
+  (and ``summary.changed_blocks`` counts them);
+- within the limits: every tilt from the programmed tool vector <= Θ, every step between
+  consecutive blocks <= θ where the program's own step was (the printed words: 0.01° slack for
+  their rounding), the tip C where it was (tip pivot) up to the printed decimals;
+- no new collision and every reported fix real, by the exact reference (coal against the mold,
+  the exact bead test against the beads the *output* lays), independent of ncfix's checker: at
+  every block's end pose, and at the sweep samples (pitch spacing) of the moves the fix changed
+  (at most SWEEP_MOVES of them, evenly spread, on the 5,000-point programs): a block colliding in
+  the output is one the report lists as unresolved;
+- idempotent: a clean output has nothing for ncfix to find (``--check`` on it: no collision), so a
+  second run changes nothing; an output with unresolved blocks is run again and must come back
+  byte for byte (``NOT_IDEMPOTENT`` lists the known exception, checked to still fail: xfail);
+- the report's exit status follows its unresolved blocks.
+
+The 5,000-point programs are marked ``long`` (about 5-15 minutes each): ``pytest -m long``.
+The settings are the bundled ``samples/ncfix.toml`` (head, mold, M3/M5 deposit, θ = 30°); the
+deposit wall has no part and deposits with its E words; the fixture F2 runs with the head only.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import ncfix
+from ncfix.geometry.frames import angle_between_deg
+from ncfix.nc.modal import Interpreter
+from ncfix.profiles import load_profile
+
+pytestmark = pytest.mark.heavy
+SAMPLES = Path(__file__).resolve().parents[1] / "samples"
+CONFIG = SAMPLES / "ncfix.toml"
+STANDOFF, PITCH, BEAD_R = 6.0, 0.5, 1.0
+THETA, BIG_THETA = 30.0, 30.0
+SWEEP_MOVES = 150  # changed moves whose sweeps the exact reference samples, at most
+# Known open problem (issue #5): where blocks stay unresolved, a second run may free more of them.
+NOT_IDEMPOTENT = {
+    ("bathtub_273_table_ac.nc", "graph"): "a second graph run on its output (blocks left unresolved) changes it",
+}
+
+CASES = [
+    ("bathtub_273.nc", "ijk", True),
+    ("bathtub_273_table_ac.nc", "table-ac", True),
+    ("bathtub_273_sinumerik.mpf", "sinumerik-vector", True),
+    ("deposit_wall.nc", "ijk", False),
+    ("fixture_f2_ijk.nc", "ijk", False),
+    *(pytest.param(name, machine, True, marks=pytest.mark.long, id=name) for name, machine in (
+        ("bathtub_5000.nc", "ijk"), ("bathtub_5000_table_ac.nc", "table-ac"),
+        ("bathtub_5000_sinumerik.mpf", "sinumerik-vector"))),
+]
+
+
+def _settings(name: str, machine: str, mold: bool, strategy: str) -> dict:
+    head = str(SAMPLES / "deposition_head.stl")
+    if mold:  # the bundled config, as `ncfix samples/<name>` reads it
+        return {"config": CONFIG, "machine": machine, "strategy": strategy}
+    return {"machine": machine, "strategy": strategy, "head": head, "standoff": STANDOFF, "pitch": PITCH,
+            "bead_radius": BEAD_R if name == "deposit_wall.nc" else 0.0, "max_step": THETA}
+
+
+def _run(data: bytes, settings: dict, **more):
+    out = io.BytesIO()
+    report = ncfix.process(io.BytesIO(data), out, **settings, **more)
+    return out.getvalue(), report
+
+
+class Program:
+    """A program's motion blocks as the exact reference sees them: words, P, N, R, tip C, and the
+    beads each end pose sees (the deposit rule of the settings, ncfix's spacing: pitch / 2)."""
+
+    def __init__(self, data: bytes, profile, deposit_codes):
+        from ncfix.collision.path import PathChecker
+        from ncfix.collision.stage import MotionRows
+
+        chunk = Interpreter(profile, "sample", deposit_codes).feed_chunk(data.splitlines(keepends=True), 1)
+        rows = np.nonzero(chunk.motion >= 0)[0]
+        known = np.isfinite(chunk.words[rows]).all(axis=1)
+        self.rows, self.profile = rows[known], profile
+        self.path = PathChecker(None, profile, STANDOFF, PITCH)
+        self.words = self.path.normalise(chunk.words[self.rows])
+        self.tcp = MotionRows(self.path, profile, None).tcp(chunk, self.rows)
+        self.P, self.N, self.R = self.path.forward(self.words, self.tcp)
+        self.C = self.P + STANDOFF * self.N
+        self.lines = chunk.first_lineno + self.rows
+        self.arc = np.isfinite(chunk.arc[self.rows, 0]) if chunk.arc is not None else np.zeros(len(self.rows), bool)
+        if deposit_codes is None:  # E words grow (the deposit wall), else between the codes
+            with np.errstate(invalid="ignore"):
+                depositing = (chunk.motion[self.rows] >= 1) & (chunk.e_delta[self.rows] > 0)
+        else:
+            depositing = (chunk.motion[self.rows] >= 1) & (chunk.deposit_on[self.rows] == 1)
+        self.depositing = depositing
+
+    def beads_before(self, i: int, upto: np.ndarray) -> np.ndarray:
+        """Bead centres laid by the moves before block i, and by move i up to point ``upto``."""
+        from ncfix.reference import bead_centres
+
+        if not hasattr(self, "_laid"):
+            runs = [bead_centres(self.P[j - 1], self.P[j], 0.5 * PITCH) if self.depositing[j] else np.zeros((0, 3))
+                    for j in range(1, len(self.P))]
+            self._laid = np.concatenate([np.zeros((0, 3)), *runs])
+            self._start = np.concatenate([[0, 0], np.cumsum([len(r) for r in runs])])  # of move j's beads
+        own = bead_centres(self.P[i - 1], upto, 0.5 * PITCH) if i > 0 and self.depositing[i] else np.zeros((0, 3))
+        return np.concatenate([self._laid[:self._start[i]], own])
+
+
+def _exact_hits(prog: Program, ref, bead_r: float, rows: np.ndarray, sweeps: bool) -> set[int]:
+    """Lines of the blocks ``rows`` (indices into prog) whose end pose (or, with ``sweeps``, a
+    sample of the move into it, at most a pitch of head motion apart) the exact reference finds
+    colliding."""
+    rho = float(np.linalg.norm(ref.head.vertices, axis=1).max())
+    lo, hi = ref._bead_head.bounds
+    hits = set()
+    for i in rows:
+        i = int(i)
+        poses = [(prog.C[i], prog.R[i], prog.P[i])]
+        if sweeps and i > 0:
+            assert not prog.arc[i], "sweep sampling here follows straight moves only"
+            turn = float(np.radians(angle_between_deg(prog.N[i:i + 1], prog.N[i - 1:i])[0]))
+            m = max(1, int(np.ceil((np.linalg.norm(prog.C[i] - prog.C[i - 1]) + rho * (turn + 1e-3)) / PITCH)))
+            t = np.arange(1, m) / m
+            words = prog.words[i - 1] + t[:, None] * (prog.words[i] - prog.words[i - 1])
+            P, N, R = prog.path.forward(prog.path.normalise(words), np.full(len(t), prog.tcp[i]))
+            poses += list(zip(P + STANDOFF * N, R, P))
+        for c, r, p in poses:
+            if ref.parts and ref.collides(c, r):
+                hits.add(int(prog.lines[i]))
+                break
+            if bead_r > 0:
+                beads = prog.beads_before(i, p)
+                local = (beads - c) @ r  # the head frame: only beads by the clipped head's box can touch it
+                near = beads[((local >= lo - bead_r) & (local <= hi + bead_r)).all(axis=1)]
+                if len(near) and ref.bead_collides(c, r, near, bead_r):
+                    hits.add(int(prog.lines[i]))
+                    break
+    return hits
+
+
+@pytest.mark.parametrize("strategy", ["epa", "graph"])
+@pytest.mark.parametrize("name, machine, mold", CASES, ids=lambda v: v if isinstance(v, str) and "." in v else None)
+def test_sample_fix(name, machine, mold, strategy):
+    from ncfix.geometry.mesh import load_head, load_mesh
+    from ncfix.reference import ExactReference
+
+    data = (SAMPLES / name).read_bytes()
+    settings = _settings(name, machine, mold, strategy)
+    out, report = _run(data, settings)
+    s = report.summary
+
+    # Lossless: only the reported lines changed, each counted once.
+    before, after = data.splitlines(keepends=True), out.splitlines(keepends=True)
+    assert len(before) == len(after)
+    changed = [i + 1 for i, (a, b) in enumerate(zip(before, after)) if a != b]
+    assert changed == sorted(c["line"] for c in report.changes)
+    assert s["changed_blocks"] == len(changed)
+    unresolved = {u["line"] for u in report.unresolved}
+    assert s["unresolved_blocks"] == len(unresolved)
+    assert report.exit_code == (1 if unresolved else 0)
+
+    # Within the limits, the tip where it was.
+    profile = load_profile(machine)
+    codes = ("M3", "M5") if mold else None
+    p0, p1 = Program(data, profile, codes), Program(out, profile, codes)
+    assert np.array_equal(p0.lines, p1.lines)
+    fmt = profile.number_format
+    rounding = 0.5 * 10.0 ** -fmt.linear * np.sqrt(3) + 250.0 * np.radians(0.5 * 10.0 ** -fmt.angle) + 2e-6
+    assert np.linalg.norm(p1.C - p0.C, axis=1).max(initial=0.0) < rounding
+    assert angle_between_deg(p1.N, p0.N).max(initial=0.0) <= BIG_THETA + 1e-6
+    own = angle_between_deg(p0.N[1:], p0.N[:-1])
+    step = angle_between_deg(p1.N[1:], p1.N[:-1])
+    assert (step[own <= THETA] <= THETA + 0.01).all()
+
+    # The exact reference on the output: end poses everywhere, sweeps of the changed moves.
+    head = load_head(SAMPLES / "deposition_head.stl").mesh
+    parts = {"part:recreated_mold.stl": load_mesh(SAMPLES / "recreated_mold.stl", "part").mesh} if mold else {}
+    ref = ExactReference(head, parts)
+    bead_r = BEAD_R if (mold or name == "deposit_wall.nc") else 0.0
+    moved = np.nonzero(np.isin(p1.lines, changed))[0]
+    after_moved = np.unique(np.concatenate([moved, moved + 1]))
+    after_moved = after_moved[after_moved < len(p1.lines)]
+    if len(after_moved) > SWEEP_MOVES:
+        after_moved = after_moved[np.linspace(0, len(after_moved) - 1, SWEEP_MOVES).astype(int)]
+    end_hits = _exact_hits(p1, ref, bead_r, np.arange(len(p1.lines)), sweeps=False)
+    sweep_hits = _exact_hits(p1, ref, bead_r, after_moved, sweeps=True)
+    assert end_hits <= unresolved, f"collisions at lines {sorted(end_hits - unresolved)} are not reported"
+    assert sweep_hits <= unresolved, f"sweeps into lines {sorted(sweep_hits - unresolved)} collide"
+    if s["colliding_blocks_before"]:
+        assert s["changed_blocks"] > 0 or unresolved
+
+    # Idempotent.
+    if not unresolved:
+        _, check = _run(out, settings, check=True)
+        assert check.summary["colliding_blocks_before"] == 0 and check.exit_code == 0
+    else:
+        again, report2 = _run(out, settings)
+        same = again == out and report2.summary["changed_blocks"] == 0
+        if (name, strategy) in NOT_IDEMPOTENT:
+            assert not same, f"{name} with {strategy} is idempotent now: take it off NOT_IDEMPOTENT"
+            pytest.xfail(NOT_IDEMPOTENT[(name, strategy)])
+        assert same
