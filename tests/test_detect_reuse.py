@@ -67,30 +67,34 @@ def box(tmp_path_factory):
     return str(path)
 
 
+def _collect(monkeypatch, owner, name, made_by):
+    """Replace owner.name by a wrapper that records what each call makes (``made_by(original,
+    *args, **kw)`` returns it); the list of them."""
+    made = []
+    original = getattr(owner, name)
+
+    def spy(*args, **kw):
+        made.append(made_by(original, *args, **kw))
+        return made[-1] if name != "__init__" else None
+
+    monkeypatch.setattr(owner, name, spy)
+    return made
+
+
 @pytest.fixture
 def strategies(monkeypatch):
-    made = []
-
-    def make_strategy(options):
-        made.append(ShiftStrategy(options))
-        return made[-1]
-
-    monkeypatch.setattr(solve, "make_strategy", make_strategy)
-    return made
+    """The ShiftStrategy objects the stage makes (in place of the real strategy)."""
+    return _collect(monkeypatch, solve, "make_strategy", lambda _, options: ShiftStrategy(options))
 
 
 @pytest.fixture
 def stages(monkeypatch):
     """The CorrectStage objects the pipeline makes."""
-    made = []
-    init = CorrectStage.__init__
+    def init(original, self, *args, **kw):
+        original(self, *args, **kw)
+        return self
 
-    def spy(self, *args, **kw):
-        init(self, *args, **kw)
-        made.append(self)
-
-    monkeypatch.setattr(CorrectStage, "__init__", spy)
-    return made
+    return _collect(monkeypatch, CorrectStage, "__init__", init)
 
 
 @pytest.fixture
