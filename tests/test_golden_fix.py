@@ -41,14 +41,31 @@ def _poses(data: bytes, profile):
 
 
 @pytest.mark.parametrize("name, src", make_cases.case_files(), ids=[n for n, _ in make_cases.case_files()])
-def test_golden_fix(name, src):
+def test_golden_fix(name, src, monkeypatch):
+    from ncfix.correct.stage import CorrectStage
+
     profile = load_profile(name)
     settings = make_cases.settings(profile)
     expected = make_cases.expected_path(src).read_bytes()
     data = src.read_bytes()
+    table = {}  # line -> the words the fix checked later rows against (its table, as applied)
+    apply = CorrectStage._apply
+
+    def spy(self, first, last, words, collided):
+        apply(self, first, last, words, collided)
+        for row in range(first, last + 1):
+            table[int(self.rows.line[row])] = self.rows.words[row].copy()
+
+    monkeypatch.setattr(CorrectStage, "_apply", spy)
     out = io.BytesIO()
     report = ncfix.process(io.BytesIO(data), out, **settings)
     assert out.getvalue() == expected, f"regenerate with {make_cases.__file__} --expected and review the diff"
+    # The fix checked what it wrote: its table holds the words as the output states them, bit for bit.
+    chunk = Interpreter(profile).feed_chunk(expected.splitlines(keepends=True), 1)
+    changed = {c["line"] for c in report.changes}
+    assert changed and changed <= set(table)
+    for line in changed:
+        assert np.array_equal(table[line], chunk.words[line - 1], equal_nan=True), f"line {line}"
     assert report.exit_code == 0 and report.summary["colliding_blocks_before"] > 0
     before, after = data.splitlines(), expected.splitlines()
     assert len(before) == len(after)

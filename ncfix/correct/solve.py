@@ -183,7 +183,7 @@ class Episode:
         end = self.last + 1 if self.after_row is None else self.last + 2
         saved = r.words[self.first:end].copy()
         try:
-            r.words[self.first:self.last + 1] = words
+            r.words[self.first:self.last + 1] = stage.as_printed(self.rows, words)  # checked as written
             hits, _ = self.path.check(stage._moves(self.first, end), stage.store, 0, commit=False)
         finally:
             r.words[self.first:end] = saved

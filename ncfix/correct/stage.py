@@ -433,11 +433,48 @@ class CorrectStage:
                              "clearance_mm": round(float(clearance), 4)}
         return out
 
+    def as_printed(self, rows: np.ndarray, words: np.ndarray) -> np.ndarray:
+        """``words`` (one row each of ``rows``) as the output will state them. The writer writes
+        a value only where it differs from the programmed one (all of a vector's components
+        when one does), rounded to the decimals of its line (``emit.printed_decimals``) in the
+        line's units: those values are rounded the same way here, the rest are the programmed. Solutions are
+        checked, and later rows detected, as written, so a fresh check of the output decides as
+        the fix did. Incremental (G91) rows are left as computed (the writer prints increments)."""
+        from ncfix.nc.emit import printed_decimals, word_kind
+        from ncfix.nc.modal import MM_PER_INCH
+
+        out = np.array(words, dtype=np.float64)
+        profile = self.profile
+        letters = profile.kinematics.letters
+        kinds = [word_kind(profile, letter) for letter in letters]
+        linear = np.array([letter in ("X", "Y", "Z") for letter in letters])
+        vector = np.array([profile.is_vector and letter in profile.kinematics.orientation_letters
+                           for letter in letters])
+        r = self.rows
+        rows = np.asarray(rows, dtype=np.int64)
+        with np.errstate(invalid="ignore"):
+            written = np.isfinite(out) & ~np.isclose(out, r.programmed[rows], rtol=0.0, atol=1e-12)
+        written |= (written & vector).any(axis=1, keepdims=True) & vector & np.isfinite(out)
+        out = np.where(written | np.isnan(out), out, r.programmed[rows])  # a value not written stays as read
+        for i in np.nonzero(written.any(axis=1))[0].tolist():
+            row = int(rows[i])
+            chunk = self.held[int(r.chunk[row]) - self.first_serial]
+            line = int(r.row[row])
+            if chunk.incremental[line]:
+                continue
+            decimals = printed_decimals(chunk.lines[line].decode("latin-1"), profile)
+            inch = MM_PER_INCH if chunk.inch[line] else 1.0
+            for k in np.nonzero(written[i])[0].tolist():
+                scale = inch if linear[k] else 1.0
+                out[i, k] = float(f"{out[i, k] / scale:.{decimals[kinds[k]]}f}") * scale
+        return out
+
     def _apply(self, first: int, last: int, words: np.ndarray, collided: dict[int, dict]) -> None:
         """Write the solved words of rows first..last into the table and their chunks."""
         r = self.rows
         rows = np.arange(first, last + 1)
-        changed = ~np.all(np.isclose(words, r.words[rows], rtol=0.0, atol=1e-9), axis=1)
+        printed = self.as_printed(rows, words)  # the table holds the rows as written
+        changed = ~np.all(np.isclose(printed, r.words[rows], rtol=0.0, atol=1e-9), axis=1)
         if not changed.any():
             return
         h = self.path.standoff_mm
@@ -455,7 +492,7 @@ class CorrectStage:
             reason = "collision" if row in collided else "blend"
             chunk.new_words[line_index] = words[i].copy()
             chunk.reasons[line_index] = reason
-            r.words[row] = words[i]
+            r.words[row] = printed[i]
             entry = collided.get(row)
             after = ref.clearance(P1[i] + h * N1[i], R1[i])[0] if ref.parts else math.inf
             before = entry["clearance_mm"] if entry else (

@@ -60,27 +60,11 @@ def rewrite_line(raw: str, profile: Profile, values: dict[str, float], required:
     are added when missing (e.g. all of I J K).
     """
     body, eol = split_eol(raw)
-    spans = {}
-    for span in word_spans(body):
-        if span.address not in spans:
-            spans[span.address] = span
+    spans = _first_spans(body)
     kin = profile.kinematics
-    orientation = set(kin.orientation_letters)
     fmt = profile.number_format
-
-    def kind_of(letter: str) -> str:
-        if letter in orientation:
-            return "vector" if profile.is_vector else "angle"
-        return "linear"
-
-    defaults = {"linear": fmt.linear, "angle": fmt.angle, "vector": fmt.vector}
-    # A post trims zeros for all words of a kind or for none: one trimmed sibling tells.
-    trim = {kind: False for kind in defaults}
-    for letter in kin.letters:
-        if letter in spans:
-            kind = kind_of(letter)
-            trim[kind] = trim[kind] or trims_zeros(spans[letter].value, defaults[kind])
-            defaults[kind] = max(defaults[kind], decimals_of(spans[letter].value))
+    kind_of = _kinds(profile)
+    defaults, trim = _line_style(spans, profile)
     edits: list[tuple[int, int, str]] = []
     missing: list[str] = []
     for letter in kin.letters:
@@ -127,6 +111,52 @@ def rewrite_line(raw: str, profile: Profile, values: dict[str, float], required:
         out = out[:start] + text + out[end:]
     out = _refresh_checksum(out, profile)
     return out + eol
+
+
+def printed_decimals(raw: str, profile: Profile) -> dict[str, int]:
+    """The decimals ``rewrite_line`` prints each kind of word with on the line ``raw``:
+    ``{"linear": .., "angle": .., "vector": ..}`` (the profile's default, or more where the
+    line's own words of that kind have more)."""
+    return _line_style(_first_spans(split_eol(raw)[0]), profile)[0]
+
+
+def word_kind(profile: Profile, letter: str) -> str:
+    """"linear", "angle" or "vector": which number format a position/orientation letter takes."""
+    return _kinds(profile)(letter)
+
+
+def _first_spans(body: str) -> dict:
+    spans = {}
+    for span in word_spans(body):
+        if span.address not in spans:
+            spans[span.address] = span
+    return spans
+
+
+def _kinds(profile: Profile):
+    orientation = set(profile.kinematics.orientation_letters)
+
+    def kind_of(letter: str) -> str:
+        if letter in orientation:
+            return "vector" if profile.is_vector else "angle"
+        return "linear"
+
+    return kind_of
+
+
+def _line_style(spans: dict, profile: Profile) -> tuple[dict[str, int], dict[str, bool]]:
+    """Decimals per kind of word, and whether the line's post trims zeros, from the line's words."""
+    fmt = profile.number_format
+    kind_of = _kinds(profile)
+    defaults = {"linear": fmt.linear, "angle": fmt.angle, "vector": fmt.vector}
+    # A post trims zeros for all words of a kind or for none: one trimmed sibling tells.
+    trim = {kind: False for kind in defaults}
+    for letter in profile.kinematics.letters:
+        if letter in spans:
+            kind = kind_of(letter)
+            trim[kind] = trim[kind] or trims_zeros(spans[letter].value, defaults[kind])
+            defaults[kind] = max(defaults[kind], decimals_of(spans[letter].value))
+    return defaults, trim
 
 
 def _code_end(body: str) -> int:
