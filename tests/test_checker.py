@@ -283,6 +283,19 @@ def test_retired_beads_are_still_seen_conservatively(bead_checker):
     assert bead_checker.stats.retired_bead_hits > before
     free = bead_checker.poses_free(C, R, np.arange(n), store, np.zeros((0, 3)), np.zeros(0, dtype=np.int64))
     assert not (truth & free).any()
+    # The main field was cropped to the kept beads (its memory follows the newest material) and,
+    # with the old field below it, still bounds the distance to every bead, retired ones too.
+    from scipy.spatial import cKDTree
+
+    field = store.field(PITCH)
+    kept = beads[store.retired:]
+    extent = np.array(field.fine.shape) * PITCH
+    assert (extent <= kept.max(axis=0) - kept.min(axis=0) + 2 * (field._fine_reach() + 24.0) + 4 * PITCH).all()
+    assert (extent < beads.max(axis=0) - beads.min(axis=0)).any()
+    pts = np.random.default_rng(6).uniform(beads.min(axis=0) - 5, beads.max(axis=0) + 5, (20_000, 3))
+    near = pts[np.abs(cKDTree(beads).query(pts)[0] - 1.0) < 3.0]  # within the fine reach of a bead surface
+    truth = np.maximum(cKDTree(beads).query(near)[0] - 1.0, 0.0)  # the bound stops at 0 inside
+    assert (field.lower_bound_np(near) <= truth + 1e-9).all()
 
 
 def test_bead_field_is_a_lower_bound_on_the_distance_to_the_beads():

@@ -160,14 +160,24 @@ class BeadStore:
         self._levels.append([pts, None])
 
     def _retire(self) -> None:
-        """Move the oldest levels into the old field until at most ``exact_max`` beads stay exact."""
+        """Move the oldest levels into the old field until at most ``exact_max`` beads stay exact,
+        and crop the main field to the beads left exact (it bounds the old ones through ``below``):
+        its memory follows the newest material, not the whole print."""
         self._close()
+        retired = False
         while self._levels and self.count - self.retired > self.exact_max:
             pts, _ = self._levels.pop(0)
             if self.old is None:  # twice as coarse: 1/8 of the memory and of the stamping
                 self.old = BeadField(self.radius_mm, OLD_FIELD_COARSENING * self._field.pitch_mm)
+                self._field.below = self.old
             self.old.add(pts)
             self.retired += len(pts)
+            retired = True
+        kept = [p for p, _ in self._levels] + list(self._open)
+        if retired and kept:
+            lo = np.min([p.min(axis=0) for p in kept], axis=0)
+            hi = np.max([p.max(axis=0) for p in kept], axis=0)
+            self._field.crop(lo, hi)
 
     def trees(self) -> list[tuple[cKDTree, np.ndarray]]:
         """(k-d tree, centres) of the exact levels, oldest first (trees built here when missing)."""
@@ -254,6 +264,9 @@ class BeadField:
         self._tensors: dict = {}
         self._dirty: list[tuple[str, tuple[slice, ...]]] = []
         self._kernel = _coarse_kernel(self.coarse_mm, self.radius_mm)
+        # Material this field no longer holds (``crop``: the store's retired beads), bounded by a
+        # field of its own: ``lower_bound`` is the smaller of the two.
+        self.below: BeadField | None = None
 
     @property
     def fine_reach_mm(self) -> float:
@@ -313,6 +326,27 @@ class BeadField:
         if grown_f or grown_c:
             self._tensors = {}
             self._dirty = []
+
+    def crop(self, lo_mm: np.ndarray, hi_mm: np.ndarray) -> None:
+        """Keep the grids only where they can matter for beads inside the box [lo_mm, hi_mm] (the
+        beads the field still has to bound; ``below`` bounds the rest): cells farther from the box
+        than the reach of a stamp hold the far value anyway for those beads. Cells kept may still
+        hold stamps of beads outside (lower values: still a lower bound); the box becomes the
+        given one. Not inside an ``overlay``."""
+        lo_mm, hi_mm = np.asarray(lo_mm, dtype=np.float64), np.asarray(hi_mm, dtype=np.float64)
+        h = self.pitch_mm
+        reach = self._fine_reach()
+        need_lo = np.floor((lo_mm - reach) / h).astype(np.int64) - 1
+        need_hi = np.ceil((hi_mm + reach) / h).astype(np.int64) + 2
+        self.fine, self.fine_lo = _cropped(self.fine, self.fine_lo, need_lo, need_hi)
+        pad = int(np.ceil(COARSE_REACH_MM / self.coarse_mm)) + 2
+        k = self._coarse_index(np.array([lo_mm, hi_mm]))
+        coarse_lo = self.coarse_lo
+        self.coarse, self.coarse_lo = _cropped(self.coarse, coarse_lo, k[0] - pad, k[1] + pad + 1)
+        self.occupied, _ = _cropped(self.occupied, coarse_lo, k[0] - pad, k[1] + pad + 1)
+        self.box = np.array([np.maximum(self.box[0], lo_mm), np.minimum(self.box[1], hi_mm)])
+        self._tensors = {}
+        self._dirty = []
 
     def _mark_dirty(self, a, b, dev, cells) -> None:
         h = self.pitch_mm
@@ -418,7 +452,10 @@ class BeadField:
         box = t["box"]
         gap = torch.clamp(torch.maximum(box[0] - points, points - box[1]), min=0.0)
         outside = torch.sqrt(gap[:, 0] * gap[:, 0] + gap[:, 1] * gap[:, 1] + gap[:, 2] * gap[:, 2]) - self.radius_mm
-        return torch.maximum(lb, outside)
+        lb = torch.maximum(lb, outside)
+        if self.below is not None and self.below.count:
+            lb = torch.minimum(lb, self.below.lower_bound(points))
+        return lb
 
     def lower_bound_np(self, points: np.ndarray) -> np.ndarray:
         """The same bound for numpy points (m, 3) -> (m,) float64 (tests, small queries)."""
@@ -457,6 +494,17 @@ def _regrid(grid: np.ndarray, lo: np.ndarray, need_lo: np.ndarray, need_hi: np.n
         o = lo - new_lo
         out[o[0]:o[0] + grid.shape[0], o[1]:o[1] + grid.shape[1], o[2]:o[2] + grid.shape[2]] = grid
     return out, new_lo, True
+
+
+def _cropped(grid: np.ndarray, lo: np.ndarray, need_lo: np.ndarray, need_hi: np.ndarray):
+    """The part of ``grid`` (global indices from ``lo``) within [need_lo, need_hi), as a copy
+    (the rest is freed) -> (grid, lo); the grid as it is when it lies inside already. The region
+    must overlap the grid (it holds the beads it is cropped to)."""
+    a = np.clip(need_lo - lo, 0, grid.shape)
+    b = np.clip(need_hi - lo, a, grid.shape)
+    if (a == 0).all() and (b == np.array(grid.shape)).all():
+        return grid, lo
+    return grid[a[0]:b[0], a[1]:b[1], a[2]:b[2]].copy(), lo + a
 
 
 def _coarse_kernel(cell_mm: float, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
