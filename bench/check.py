@@ -51,6 +51,32 @@ def _clean_points(blocks: int) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([x, y, z], axis=1).astype(np.float64), np.tile([0.0, 0.0, 1.0], (blocks, 1))
 
 
+def write_clean(program: Path, blocks: int, piece: int = 200_000) -> Path:
+    """The clean layered print (``_clean_points``) posted for the ijk profile as one program, in
+    pieces of ``piece`` points: M3 after the plunge to the first point, the retract (straight up
+    from the last point) and the end after the last piece."""
+    from ncfix.nc.post import post_program
+    from ncfix.profiles import load_profile
+
+    profile = load_profile("ijk")
+    with open(program, "w") as f:
+        tail: list[str] = []
+        for a in range(0, blocks, piece):
+            P, N = _clean_points(min(blocks, a + piece))
+            lines = list(post_program(profile, P[a:], N[a:], title="bench"))
+            last = max(i for i, line in enumerate(lines) if " X" in line)  # the retract
+            if a:  # the body only (not the approach nor the retract), then this piece's retract
+                tail = [lines[last]] + tail[1:]
+                lines = [line for line in lines if line.startswith("N") and " X" in line][1:-1]
+            else:  # deposit from the first point on (M3), not on the plunge to it
+                first = next(i for i, line in enumerate(lines) if " G1 " in line)
+                lines.insert(first + 1, "M3\n")
+                lines, tail = lines[:last + 1], lines[last + 1:]
+            f.writelines(lines)
+        f.writelines(tail)
+    return program
+
+
 def one(kind: str, size: int) -> dict:
     """One workload in this process -> timings (s), poses, blocks, peak RSS (MB)."""
     t0 = time.perf_counter()
@@ -90,23 +116,7 @@ def one(kind: str, size: int) -> dict:
         part = trimesh.creation.box(extents=(120.0, 120.0, 5.0))
         part.apply_translation((0.0, 0.0, -3.5))
         out["load"] = time.perf_counter() - t
-        program = tmp / "clean.nc"
-        with open(program, "w") as f:
-            tail: list[str] = []
-            for a in range(0, size, 200_000):
-                P, N = _clean_points(min(size, a + 200_000))
-                P, N = P[a:], N[a:]
-                lines = list(post_program(profile, P, N, title="bench"))
-                if a:  # continue the same program: only the body
-                    lines = [line for line in lines if line.startswith("N") and " X" in line][1:-1]
-                else:  # deposit from the first point on (M3), not on the plunge to it; the retract
-                    # and the end go after the last chunk (not across the print, depositing)
-                    first = next(i for i, line in enumerate(lines) if " G1 " in line)
-                    lines.insert(first + 1, "M3\n")
-                    last = max(i for i, line in enumerate(lines) if " X" in line)
-                    lines, tail = lines[:last], lines[last:]
-                f.writelines(lines)
-            f.writelines(tail)
+        program = write_clean(tmp / "clean.nc", size)
         parts = [("part:slab", part, True)]
     options = Options(head="head.stl", check=True, device="cpu",
                       deposit_codes=("M3", "M5") if kind == "clean" else None)
