@@ -63,7 +63,7 @@ class LayeredGraph:
             src = np.flatnonzero(self.valid[level - 1])
             # A level of a few vertices (an anchor) gets every source: the cap must not cut it off.
             width = len(src) if self.valid[level].sum() <= 4 else min(neighbours, len(src))
-            if width == 0:
+            if width == 0 or self.dense[level]:  # a dense level's edges are found by each search
                 self.source.append(np.zeros((k, 0), dtype=np.int64))
                 self.weight.append(np.zeros((k, 0)))
                 continue
