@@ -56,6 +56,7 @@ class LayeredGraph:
         # off: those levels are searched densely, over the allowed vertices of a search.
         self.dense = limit > DENSE_ABOVE_DEG
         self.banned: dict[int, set[tuple[int, int]]] = {}
+        self._ban_arrays: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # of ``banned``, made when searched
         # Per level l >= 1: for each vertex, up to ``neighbours`` sources at level l-1 and the angle.
         self.source: list[np.ndarray] = [np.zeros((k, 0), dtype=np.int64)]
         self.weight: list[np.ndarray] = [np.zeros((k, 0))]
@@ -96,6 +97,7 @@ class LayeredGraph:
             return
         pairs = self.banned.setdefault(level, set())
         pairs.update((int(a), int(b)) for a in np.asarray(sources).reshape(-1) for b in targets)
+        self._ban_arrays.pop(level, None)
         weight = self.weight[level][targets]
         weight[np.isin(self.source[level][targets], np.asarray(sources, dtype=np.int64))] = np.inf
         self.weight[level][targets] = weight
@@ -139,6 +141,15 @@ class LayeredGraph:
         return path
 
 
+    def _ban_pairs(self, level: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """The banned edges into ``level`` as (sources, targets) arrays, or None."""
+        if not self.banned.get(level):
+            return None
+        if level not in self._ban_arrays:
+            pairs = np.array(list(self.banned[level]), dtype=np.int64)
+            self._ban_arrays[level] = (pairs[:, 0], pairs[:, 1])
+        return self._ban_arrays[level]
+
     def _dense_step(self, level: int, cost: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One level of the search over every edge between the reachable vertices of the level
         before and the allowed vertices of this one: (best cost (K,), its source (K,))."""
@@ -153,10 +164,13 @@ class LayeredGraph:
             sources = sources @ self.turns[level].T
         step = np.degrees(np.arccos(np.clip(self.candidates[level][dst] @ sources.T, -1.0, 1.0)))
         total = np.where(step <= self.limit[level] * (1.0 + 1e-12), cost[src][None, :] + step, np.inf)
-        for a, b in self.banned.get(level, ()):
+        banned = self._ban_pairs(level)
+        if banned is not None:
+            a, b = banned
             i, j = np.searchsorted(dst, b), np.searchsorted(src, a)
-            if i < len(dst) and dst[i] == b and j < len(src) and src[j] == a:
-                total[i, j] = np.inf
+            hit = (i < len(dst)) & (j < len(src))
+            hit[hit] = (dst[i[hit]] == b[hit]) & (src[j[hit]] == a[hit])
+            total[i[hit], j[hit]] = np.inf
         pick = np.argmin(total, axis=1)
         best[dst] = total[np.arange(len(dst)), pick]
         back[dst] = src[pick]
