@@ -63,8 +63,11 @@ def rewrite_line(raw: str, profile: Profile, values: dict[str, float], required:
     spans = _first_spans(body)
     kin = profile.kinematics
     fmt = profile.number_format
-    kind_of = _kinds(profile)
     defaults, trim = _line_style(spans, profile)
+
+    def kind_of(letter: str) -> str:
+        return word_kind(profile, letter)
+
     edits: list[tuple[int, int, str]] = []
     missing: list[str] = []
     for letter in kin.letters:
@@ -122,7 +125,9 @@ def printed_decimals(raw: str, profile: Profile) -> dict[str, int]:
 
 def word_kind(profile: Profile, letter: str) -> str:
     """"linear", "angle" or "vector": which number format a position/orientation letter takes."""
-    return _kinds(profile)(letter)
+    if letter in profile.kinematics.orientation_letters:
+        return "vector" if profile.is_vector else "angle"
+    return "linear"
 
 
 def _first_spans(body: str) -> dict:
@@ -133,27 +138,15 @@ def _first_spans(body: str) -> dict:
     return spans
 
 
-def _kinds(profile: Profile):
-    orientation = set(profile.kinematics.orientation_letters)
-
-    def kind_of(letter: str) -> str:
-        if letter in orientation:
-            return "vector" if profile.is_vector else "angle"
-        return "linear"
-
-    return kind_of
-
-
 def _line_style(spans: dict, profile: Profile) -> tuple[dict[str, int], dict[str, bool]]:
     """Decimals per kind of word, and whether the line's post trims zeros, from the line's words."""
     fmt = profile.number_format
-    kind_of = _kinds(profile)
     defaults = {"linear": fmt.linear, "angle": fmt.angle, "vector": fmt.vector}
     # A post trims zeros for all words of a kind or for none: one trimmed sibling tells.
     trim = {kind: False for kind in defaults}
     for letter in profile.kinematics.letters:
         if letter in spans:
-            kind = kind_of(letter)
+            kind = word_kind(profile, letter)
             trim[kind] = trim[kind] or trims_zeros(spans[letter].value, defaults[kind])
             defaults[kind] = max(defaults[kind], decimals_of(spans[letter].value))
     return defaults, trim
