@@ -274,8 +274,9 @@ def test_retired_beads_are_still_seen_conservatively(bead_checker):
         store.add(part)
     assert store.retired > 0.5 * len(beads) and store.count - store.retired <= 512 + 128
     assert store.old is not None and store.old.count == store.retired
-    q, ids, _ = store.within(beads[-5:], np.full(5, 3.0))
-    assert len(ids) and ids.min() >= store.retired  # only kept beads, laying-order ids
+    kept = np.concatenate([pts for _, pts in store.trees()])
+    assert len(kept) == store.count - store.retired  # the newest beads stay exact, in laying order
+    assert np.array_equal(kept, beads[store.retired:])
     before = bead_checker.stats.retired_bead_hits
     hit, _ = bead_checker.check_deposit(C, R, np.zeros(n), np.arange(n), store, np.zeros((0, 3)),
                                         np.zeros(0, dtype=np.int64))

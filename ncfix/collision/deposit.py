@@ -203,27 +203,6 @@ class BeadStore:
             np.minimum(out, d, out=out)
         return out
 
-    def within(self, centers_mm: np.ndarray, radii_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Exact bead centres within ``radii_mm`` (m,) of each point (m, 3).
-
-        returns (query index (k,) int64, bead id (k,) int64, bead centres (k, 3) float64), one row
-        per hit; ids are laying-order numbers, unique across the store (retired beads keep theirs).
-        """
-        centers = np.asarray(centers_mm, dtype=np.float64).reshape(-1, 3)
-        radii = np.broadcast_to(np.asarray(radii_mm, dtype=np.float64), (len(centers),))
-        qs, ids, ps = [], [], []
-        base = self.retired
-        for tree, pts in self.trees():
-            q, idx = query_pairs(tree, centers, radii)
-            if len(q):
-                qs.append(q)
-                ids.append(idx + base)
-                ps.append(pts[idx])
-            base += len(pts)
-        if not qs:
-            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 3))
-        return np.concatenate(qs), np.concatenate(ids), np.concatenate(ps)
-
 
 class BeadField:
     """A rolling lower bound on the distance from any point to the bead material (spheres).
@@ -651,26 +630,6 @@ def _stamp_kernels() -> _Kernels:
     if not _KERNELS:
         _KERNELS.append(_Kernels())
     return _KERNELS[0]
-
-
-RADIUS_GROUPS = 4  # query_pairs: groups of queries by radius
-
-
-def query_pairs(tree: cKDTree, centers: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """All (query index, point index) pairs within ``radii`` (m,) of ``centers`` (m, 3)."""
-    if len(centers) == 0:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    # C-level passes against a tree of the queries at the largest radius of a group, then each its
-    # own; queries are grouped by radius (a few wide sweep margins would make every pass wide).
-    radii = np.asarray(radii, dtype=np.float64)
-    order = np.argsort(radii, kind="stable")
-    qs, ps = [], []
-    for group in np.array_split(order, min(RADIUS_GROUPS, len(order))):
-        found = cKDTree(centers[group]).sparse_distance_matrix(tree, float(radii[group].max()), output_type="ndarray")
-        keep = found["v"] <= radii[group][found["i"]]
-        qs.append(group[found["i"][keep]])
-        ps.append(found["j"][keep].astype(np.int64))
-    return np.concatenate(qs), np.concatenate(ps)
 
 
 def bead_samples(start_mm: np.ndarray, end_mm: np.ndarray, spacing_mm: float,
