@@ -98,3 +98,61 @@ def test_wide_steps_search_every_edge_and_banned_edges_are_avoided():
     graph.ban(2, np.array([path[1]]), np.array([path[2]]))
     again = graph.cheapest(free)
     assert again is not None and (again[1], again[2]) != (path[1], path[2])
+
+
+class _ToyEpisode:
+    """An episode for ``GraphStrategy.solve`` without a machine: the words are the tool vector,
+    levels 3 and 4 collide as programmed (vertical), level 3 is free only in a narrow band (tilt
+    9-10.5° toward +X, which the coarse first tests miss) and level 4 wherever it tilts 6° or
+    more; a move collides where its end pose does, or where it starts at a colliding pose."""
+
+    def __init__(self, levels: int = 8):
+        from types import SimpleNamespace
+
+        self.rows = np.arange(levels)
+        self.N0 = np.tile([0.0, 0.0, 1.0], (levels, 1))
+        self.programmed = self.N0.copy()
+        self.colliding = np.array([3, 4])
+        self.is_colliding = np.isin(self.rows, self.colliding)
+        self.tcp = np.zeros(levels, dtype=bool)
+        self.before_words, self.after_row = self.N0[0].copy(), None
+        self.limits = self.step_limits = np.full(levels, 30.0)
+        self.turns = np.tile(np.eye(3), (levels, 1, 1))
+        self.path = SimpleNamespace(forward=lambda w, tcp: (None, w / np.linalg.norm(w, axis=1, keepdims=True), None))
+        self.stage = SimpleNamespace(options=SimpleNamespace(max_step=30.0))
+
+    def pose_free(self, level, N) -> np.ndarray:
+        level, N = np.asarray(level), N / np.linalg.norm(N, axis=1, keepdims=True)
+        tilt = np.degrees(np.arccos(np.clip(N[:, 2], -1.0, 1.0)))
+        azimuth = np.degrees(np.abs(np.arctan2(N[:, 1], N[:, 0])))
+        out = np.ones(len(level), dtype=bool)
+        out[level == 3] = ((tilt >= 9.0) & (tilt <= 10.5) & (azimuth <= 20.0))[level == 3]
+        out[level == 4] = (tilt >= 6.0)[level == 4]
+        return out
+
+    def free(self, level, N) -> np.ndarray:
+        return self.pose_free(level, N)
+
+    def words_of(self, N, programmed) -> np.ndarray:
+        return np.where(programmed[:, None], self.programmed, N)
+
+    def recheck(self, words) -> np.ndarray:
+        ok = self.pose_free(self.rows, words)
+        return ~ok | np.concatenate([[False], ~ok[:-1]])
+
+
+def test_a_level_given_up_after_a_colliding_one_is_searched_again_once_that_one_is_freed():
+    """The first paths leave level 3 colliding (its free band is not found yet), so the move into
+    level 4 collides whatever its end and level 4 is given up. Once level 3 is freed, level 4 must
+    be searched again: both end free (before, level 4 stayed given up and was reported as having
+    no free orientation)."""
+    from types import SimpleNamespace
+
+    from ncfix.correct.solve import GraphStrategy
+
+    ep = _ToyEpisode()
+    solution = GraphStrategy(SimpleNamespace(max_tilt=30.0, max_step=30.0, resolution=2.0)).solve(ep)
+    assert solution.unresolved == []
+    assert not ep.recheck(solution.words).any()
+    tilt = angle_between_deg(solution.words, ep.N0)
+    assert 9.0 - 1e-9 <= tilt[3] <= 10.5 + 1e-9 and tilt[4] >= 6.0 - 1e-9

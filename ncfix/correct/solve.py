@@ -227,6 +227,7 @@ class GraphStrategy:
     OPEN_ROUNDS = 3  # rounds with every untested vertex eligible, after the promising ones
     UNRESOLVED_COST = 1e4  # per block left colliding; far above any tilt or step cost
     FAIL_SOURCES = 3  # a vertex whose moves fail from this many vertices before it is dropped
+    REOPENS = 2  # searches again with the levels given up after a level since freed
 
     def __init__(self, options):
         self.max_tilt = float(options.max_tilt)
@@ -249,6 +250,10 @@ class GraphStrategy:
         open_rounds = 0
         best = None
         fails: dict[tuple[int, int], set[int]] = {}  # (level, vertex) -> vertices before it whose moves failed
+        # Levels given up because the level before was left colliding (their candidates' states
+        # before that); reopened when the level before is freed later (at most REOPENS times).
+        given_up: dict[int, np.ndarray] = {}
+        reopens = 0
         for _round in range(self.MAX_ROUNDS):
             eligible = (state == 1) | ((state == 0) & (promising | (open_rounds > 0)))
             allowed = valid & eligible
@@ -268,12 +273,17 @@ class GraphStrategy:
             words = ep.words_of(N, pick == 0)
             bad = ep.recheck(words) & ~left
             # A move that starts at a pose left colliding collides whatever its end: the level
-            # after it keeps its programmed orientation (then it is left colliding only when its
-            # programmed move collides too).
+            # after it keeps its programmed orientation (given up: searched again if the level
+            # before is freed later), and is left colliding with it.
             after_left = bad & np.concatenate([[False], left[:-1]])
-            if after_left.any():
-                state[np.nonzero(after_left)[0], 1:] = 2
+            tilted = after_left & (pick != 0)
+            if tilted.any():
+                for i in np.nonzero(tilted)[0]:
+                    given_up.setdefault(int(i), state[i].copy())
+                state[tilted, 1:] = 2
                 continue
+            left |= after_left
+            bad &= ~after_left
             if bad.any():
                 # The end poses were tested free: the moves into them (their sweeps, the path's own
                 # beads) are in the way. The edges between the two vertices' neighbourhoods on the
@@ -292,6 +302,16 @@ class GraphStrategy:
                 continue
             if best is None or left.sum() < best[1].sum():
                 best = (words, left)
+            # Given up after a level that is free now: reopen it, and the run given up after it.
+            stale = [i for i in given_up if not left[i - 1]]
+            if stale and reopens < self.REOPENS:
+                reopens += 1
+                for i in sorted(stale):
+                    while i in given_up:
+                        state[i] = given_up.pop(i)
+                        i += 1
+                open_rounds = 0
+                continue
             if not left.any() or open_rounds == 1:
                 break
             # Some blocks are left colliding: let every untested vertex in for a few rounds.
@@ -306,6 +326,9 @@ class GraphStrategy:
         rows = [int(ep.rows[i]) for i in np.nonzero(left)[0]]
         reasons = {}
         for i in np.nonzero(left)[0]:
+            if i > 0 and left[i - 1] and (i in given_up or state[i, 0] == 1):
+                reasons[int(ep.rows[i])] = "its move starts at the block before, which is left colliding"
+                continue
             free_any = (valid[i] & (state[i] == 1)).any()
             reasons[int(ep.rows[i])] = (
                 f"no free orientation within {self.max_tilt:g}° (--max-tilt) and the machine's limits"
