@@ -156,3 +156,16 @@ def test_a_level_given_up_after_a_colliding_one_is_searched_again_once_that_one_
     assert not ep.recheck(solution.words).any()
     tilt = angle_between_deg(solution.words, ep.N0)
     assert 9.0 - 1e-9 <= tilt[3] <= 10.5 + 1e-9 and tilt[4] >= 6.0 - 1e-9
+
+
+def test_a_search_cut_off_by_its_round_limit_says_so(monkeypatch):
+    """With too few rounds to find level 3's narrow band, the blocks are left colliding and the
+    report's reason names the round limit, not a claim about the orientations."""
+    from types import SimpleNamespace
+
+    from ncfix.correct.solve import GraphStrategy
+
+    monkeypatch.setattr(GraphStrategy, "MAX_ROUNDS", 4)
+    solution = GraphStrategy(SimpleNamespace(max_tilt=30.0, max_step=30.0, resolution=2.0)).solve(_ToyEpisode())
+    assert 3 in solution.unresolved
+    assert "4-round limit" in solution.reasons[3]

@@ -254,6 +254,7 @@ class GraphStrategy:
         # before that); reopened when the level before is freed later (at most REOPENS times).
         given_up: dict[int, np.ndarray] = {}
         reopens = 0
+        capped = False  # the search ran out of rounds (MAX_ROUNDS) before it settled
         for _round in range(self.MAX_ROUNDS):
             eligible = (state == 1) | ((state == 0) & (promising | (open_rounds > 0)))
             allowed = valid & eligible
@@ -316,10 +317,14 @@ class GraphStrategy:
                 break
             # Some blocks are left colliding: let every untested vertex in for a few rounds.
             open_rounds = self.OPEN_ROUNDS if open_rounds == 0 else open_rounds - 1
+        else:
+            capped = True
+        limit = (f"the search stopped at its {self.MAX_ROUNDS}-round limit (an episode of {L} blocks) before "
+                 "a path freeing it passed the re-check")
         if best is None:
             rows = [int(r) for r in ep.colliding]
-            why = (f"no path keeps every step within {self.max_step:g}° (--max-step) "
-                   f"and the tilt within {self.max_tilt:g}°")
+            why = limit if capped else (f"no path keeps every step within {self.max_step:g}° (--max-step) "
+                                        f"and the tilt within {self.max_tilt:g}°")
             return Solution(ep.programmed.copy(), rows, {r: why for r in rows})
         words, left = best
         words = blend_episode(ep, words, left)
@@ -330,11 +335,17 @@ class GraphStrategy:
                 reasons[int(ep.rows[i])] = "its move starts at the block before, which is left colliding"
                 continue
             free_any = (valid[i] & (state[i] == 1)).any()
-            reasons[int(ep.rows[i])] = (
-                f"no free orientation within {self.max_tilt:g}° (--max-tilt) and the machine's limits"
-                if not free_any and not (valid[i] & (state[i] == 0)).any() else
-                f"a free orientation exists, but no path to it keeps every step within {self.max_step:g}° "
-                f"(--max-step) while the blocks around it stay free")
+            untested = (valid[i] & (state[i] == 0)).any()
+            if not free_any and not untested:
+                why = f"no free orientation within {self.max_tilt:g}° (--max-tilt) and the machine's limits"
+            elif capped:
+                why = limit
+            elif free_any:
+                why = (f"a free orientation exists, but no path to it keeps every step within {self.max_step:g}° "
+                       f"(--max-step) while the blocks around it stay free")
+            else:
+                why = f"no free orientation found within {self.max_tilt:g}° (--max-tilt) among those tested"
+            reasons[int(ep.rows[i])] = why
         return Solution(words, rows, reasons)
 
     def _near(self, cands, valid, level: int, vertex: int) -> np.ndarray:
