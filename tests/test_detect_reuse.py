@@ -162,3 +162,78 @@ def test_rows_near_the_moved_beads_are_checked_again(monkeypatch, box, strategie
     assert len(strategies[-1].episodes) == 1
     assert shadow  # some detection differs from a fresh check
     assert ("deposit",) not in {tuple(c["bodies"]) for c in report.collisions}
+
+
+class ProbeStrategy:
+    """At the first episode, re-checks one episode spanning both passes (``Episode.recheck``, which
+    reuses the last re-check's results) with several words, beside a fresh check of all its
+    moves; leaves every episode as programmed."""
+
+    name = "probe"
+
+    def __init__(self, options):
+        self.probes = []  # (re-check, fresh check, moves checked, moves) per words
+
+    def solve(self, ep):
+        if not self.probes:
+            stage = ep.stage
+            wide = solve.Episode(stage, ep.first, len(stage.rows) - 2, ep.colliding)
+            pass_1 = np.nonzero(wide.stage.rows.deposit[wide.rows])[0]
+            pass_2 = np.nonzero(wide.programmed[:, 2] < -1.0)[0]
+            shifted = wide.programmed.copy()
+            shifted[pass_1, 1] += SHIFT_MM  # the beads move under pass 2
+            last_moved = shifted.copy()
+            last_moved[pass_2[-1], 0] += 1.0  # and then only pass 2's last block
+            for words in (wide.programmed, shifted, last_moved, wide.programmed):
+                checked = wide.checks.checked
+                self.probes.append((wide.recheck(words), _fresh(wide, words), wide.checks.checked - checked,
+                                    len(wide.rows)))
+            self.pass_2 = pass_2
+        return Solution(ep.programmed.copy(), [int(r) for r in ep.colliding])
+
+
+def _fresh(ep, words) -> np.ndarray:
+    """Episode.recheck without reuse: every move checked."""
+    stage, r = ep.stage, ep.stage.rows
+    end = ep.last + 1 if ep.after_row is None else ep.last + 2
+    saved = r.words[ep.first:end].copy()
+    try:
+        r.words[ep.first:ep.last + 1] = stage.as_printed(ep.rows, words)
+        hits, _ = stage.path.check(stage._moves(ep.first, end), stage.store, 0, commit=False)
+    finally:
+        r.words[ep.first:end] = saved
+    bad = hits.any
+    out = bad[:len(ep.rows)].copy()
+    if ep.after_row is not None and bad[-1]:
+        out[-1] = True
+    return out
+
+
+@pytest.fixture
+def probes(monkeypatch):
+    return _collect(monkeypatch, solve, "make_strategy", lambda _, options: ProbeStrategy(options))
+
+
+def test_a_recheck_reuses_only_what_the_changed_moves_leave_alone(box, probes):
+    _fix(_program(), box)
+    probe = probes[-1]
+    (first, fresh_first, n_first, L), (shifted, fresh_shifted, _, _), (moved, fresh_moved, n_moved, _), \
+        (again, fresh_again, _, _) = probe.probes
+    assert np.array_equal(first, fresh_first) and n_first == L + 1  # every move, and the one into the row after
+    assert np.array_equal(shifted, fresh_shifted)
+    assert np.array_equal(moved, fresh_moved)
+    assert np.array_equal(again, fresh_again)
+    # Pass 2 keeps its words but meets the moved beads: only a re-check that sees them finds it.
+    assert not first[probe.pass_2].any() and shifted[probe.pass_2].any()
+    # Moving pass 2's last block checks again that move and the one after it, not the episode.
+    assert 0 < n_moved <= 2 < L
+
+
+def test_a_recheck_that_ignores_the_moved_beads_would_miss_them(monkeypatch, box, probes):
+    """The test above can fail: a re-check that reuses every unchanged move misses pass 2."""
+    import ncfix.correct.stage as stage
+
+    monkeypatch.setattr(stage, "near_beads", lambda *args: np.zeros(len(args[1]), dtype=bool))
+    _fix(_program(), box)
+    (_, _, _, _), (shifted, fresh_shifted, _, _) = probes[-1].probes[:2]
+    assert not np.array_equal(shifted, fresh_shifted)

@@ -17,6 +17,7 @@ import numpy as np
 
 from ncfix.correct.candidates import SphereGrid, level_candidates
 from ncfix.correct.graph import LayeredGraph
+from ncfix.correct.stage import Rechecks
 from ncfix.geometry.frames import angle_between_deg, minimal_rotation
 from ncfix.kinematics.base import Unreachable
 
@@ -92,6 +93,7 @@ class Episode:
         # re-check uses the solution's own beads).
         self.bead_pts, self.bead_seq = self._programmed_beads()
         self.tests = 0  # candidate poses tested
+        self.checks = Rechecks(stage)  # re-checks, each reusing what the last one found
 
     def _prev_programmed(self) -> np.ndarray:
         r = self.stage.rows
@@ -177,18 +179,17 @@ class Episode:
     def recheck(self, words: np.ndarray) -> np.ndarray:
         """(L,) bool: levels whose move (end pose and sweep) collides with these words, with the
         solution's own beads; the row after, when its sweep from the last level collides, marks
-        the last level."""
+        the last level. Moves that nothing changed since the last re-check keep its result
+        (``Rechecks``)."""
         stage = self.stage
         r = stage.rows
         end = self.last + 1 if self.after_row is None else self.last + 2
         saved = r.words[self.first:end].copy()
         try:
             r.words[self.first:self.last + 1] = stage.as_printed(self.rows, words)  # checked as written
-            hits, _ = self.path.check(stage._moves(self.first, end), stage.store, 0, commit=False)
+            bad = self.checks.check(stage._moves(self.first, end))
         finally:
             r.words[self.first:end] = saved
-        stage.samples += hits.samples
-        bad = hits.any
         out = bad[:len(self.rows)].copy()
         if self.after_row is not None and bad[-1]:
             out[-1] = True

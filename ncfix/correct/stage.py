@@ -27,7 +27,8 @@ so is every row whose head (the deposit tree's balls, at every sample and at the
 came within its reach of a bead those moves laid, before or after the change (``_forget``). The
 rest keeps its result: the next detection checks only the runs of rows it cannot reuse, each
 with the pending beads of the rows before it (``PathChecker.check`` ``prior``). Beads the store
-retires change what every row sees: nothing is reused across that.
+retires change what every row sees: nothing is reused across that. A strategy's re-checks of one
+episode reuse each other's results by the same rule (``Rechecks``).
 """
 
 from __future__ import annotations
@@ -114,6 +115,62 @@ class Detected:
 
     def drop(self, count: int) -> "Detected":
         return Detected(*(getattr(self, f)[count:] for f in self.__dataclass_fields__))
+
+
+class Rechecks:
+    """The re-checks of one episode's moves with the words a strategy proposes (``Episode.recheck``).
+
+    Each re-check reuses the last one's result of a move where nothing that result depends on
+    changed (module doc): its own words, and the beads within its reach. A move before the first
+    changed one keeps its result (it does not see later beads); a later unchanged move keeps it
+    unless its head came within reach (``reach_mm``) of a bead of a changed move, as laid before
+    or after the change. The rest are checked, in runs, each with the beads of the moves before
+    it (``PathChecker.check`` ``prior``), as detection reuses its results."""
+
+    def __init__(self, stage: "CorrectStage"):
+        self.stage = stage
+        self.last: Moves | None = None  # the moves of the last re-check (copies)
+        self.bad = self.margin = self.lo = self.hi = None
+        self.poses: list = []
+        self.checked = self.reused = 0  # moves checked, moves whose result was reused
+
+    def check(self, moves: Moves) -> np.ndarray:
+        """(n,) bool: the moves that collide (end pose or sweep, the parts and every bead laid
+        before each: the store's and the earlier moves')."""
+        stage, ck = self.stage, self.stage.checker
+        n = len(moves)
+        todo = np.ones(n, dtype=bool)
+        if self.last is None or len(self.last) != n or not stage.REUSE_DETECTION:
+            self.bad, self.margin = np.zeros(n, dtype=bool), np.zeros(n)
+            self.lo, self.hi = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
+            self.poses = [None] * n
+        else:
+            last = self.last
+            changed = ~(_same(last.w_start, moves.w_start) & _same(last.w_end, moves.w_end))
+            todo = changed.copy()
+            if changed.any() and stage.head_corners is not None and moves.deposit[changed].any():
+                later = np.nonzero((np.arange(n) > np.argmax(changed)) & ~changed)[0]
+                beads = np.concatenate([stage.path.bead_points(_take(last, changed)),
+                                        stage.path.bead_points(_take(moves, changed))])
+                near = near_beads(ck, self.lo[later], self.hi[later], [self.poses[i] for i in later],
+                                  reach_mm(ck, self.margin[later]), beads)
+                todo[later[near]] = True
+        for s, e in _runs(todo, MERGE_GAP):
+            prior = stage.path.bead_points(_take(moves, slice(0, s))) if s else None
+            run = _take(moves, slice(s, e))
+            hits, _ = stage.path.check(run, stage.store, 0, commit=False, prior=prior)
+            stage.samples += hits.samples
+            self.checked += e - s
+            self.bad[s:e], self.margin[s:e] = hits.any, hits.margin
+            poses, lo, hi = move_poses(stage.path, run, hits, stage.head_corners)
+            self.poses[s:e] = poses
+            if lo is not None:
+                self.lo[s:e], self.hi[s:e] = lo, hi
+        self.reused += n - int(todo.sum()) if self.last is not None else 0
+        self.last = Moves(*(None if v is None else np.array(v) for v in (moves.w_start, moves.w_end, moves.tcp,
+                                                                          moves.known_start, moves.deposit,
+                                                                          moves.arc)))
+        return self.bad.copy()
 
 
 class CorrectStage:
@@ -311,78 +368,29 @@ class CorrectStage:
         d.has_sample[rows] = has
         d.C[rows[has]], d.R[rows[has]] = hits.C[hits.sample[has]], hits.R[hits.sample[has]]
         d.margin[rows] = hits.margin
-        # The poses of each move: its samples, and its sweep start where that is known.
-        known = moves.known_start
-        Cs, Rs = np.full((b - a, 3), np.nan), np.tile(np.eye(3), (b - a, 1, 1))
-        if known.any():
-            Ps, Ns, Rs[known] = self.path.forward(moves.w_start[known], moves.tcp[known])
-            Cs[known] = Ps + self.path.standoff_mm * Ns
-        ends = np.append(hits.first[1:], len(hits.C))
-        for i, row in enumerate(rows):
-            C, R = hits.C[hits.first[i]:ends[i]], hits.R[hits.first[i]:ends[i]]
-            if known[i]:
-                C, R = np.vstack([Cs[i:i + 1], C]), np.concatenate([Rs[i:i + 1], R])
-            d.poses[row] = (C, R)
-            if self.head_corners is not None:
-                lo, hi = _boxes(C, R, self.head_corners)
-                d.lo[row], d.hi[row] = lo.min(axis=0), hi.max(axis=0)
+        poses, lo, hi = move_poses(self.path, moves, hits, self.head_corners)
+        d.poses[a:b] = poses
+        if lo is not None:
+            d.lo[rows], d.hi[rows] = lo, hi
         d.valid[rows] = True
-
-    def _reach_mm(self, rows: np.ndarray) -> np.ndarray:
-        """How far (mm) beyond the deposit tree's balls bead material can be and still change the
-        detection of rows: a sample's exact test looks within the clearance and its sweep margin
-        of the clipped head (which the balls cover); its finer samples lie within that margin and
-        add their own (smaller) one: twice the row's largest margin, and two pitches more.
-
-        Not counted: the reach of the bounds (groups of samples up to GROUP_LEVELS_MM long, the
-        bead field's cells and box). They do not decide a sample, they only choose which samples
-        get an exact test; that choice can change the deposit clearance a colliding row reports
-        (the smallest of its tested hits), but it changes with where a check starts as well (the
-        groups are counted from the first sample of a check), so no reach would pin it."""
-        return 2.0 * self.detected.margin[rows] + 2.0 * self.checker.pitch_mm + self.checker.clearance_mm
 
     def _forget(self, before: Moves, first: int, end: int) -> None:
         """After an episode rewrote rows of first..end-1: forget the detection of the rows whose
-        head came within their reach (``_reach_mm``) of a bead of a changed move, as laid before
-        or after the change (the changed moves themselves have other words now: checked again).
-        The boxes of the head's balls sort most rows out; the rest are tested as the checker tests
-        poses against beads, with a field of those beads only (a lower bound: conservative)."""
+        head came within their reach (``reach_mm``) of a bead of a changed move, as laid before
+        or after the change (the changed moves themselves have other words now: checked again)."""
         if not self.REUSE_DETECTION:
             return
         after = self._moves(first, end)
         changed = ~(_same(before.w_start, after.w_start) & _same(before.w_end, after.w_end))
         if not changed.any() or not after.deposit[changed].any() or self.head_corners is None:
             return
-        old, new = self.path.bead_points(_take(before, changed)), self.path.bead_points(_take(after, changed))
-        beads = np.concatenate([old, new])
-        if len(beads) == 0:
-            return
+        beads = np.concatenate([self.path.bead_points(_take(before, changed)),
+                                self.path.bead_points(_take(after, changed))])
         d = self.detected
-        ck = self.checker
         rows = end - 1 + np.nonzero(d.valid[end - 1:])[0]  # the rows before become final now
-        reach = self._reach_mm(rows) + ck.bead_radius_mm  # from a ball to a bead's centre
-        gap = np.maximum(np.maximum(d.lo[rows] - beads.max(axis=0), beads.min(axis=0) - d.hi[rows]), 0.0)
-        near = np.einsum("ri,ri->r", gap, gap) <= reach ** 2  # near the beads' box
-        rows, reach = rows[near], reach[near]
-        near = np.zeros(len(rows), dtype=bool)
-        step = max(1, (1 << 20) // len(beads))  # rows per batch of (row, bead) gaps
-        for a in range(0, len(rows), step):
-            sl = slice(a, a + step)
-            gap = np.maximum(np.maximum(d.lo[rows[sl], None, :] - beads[None], beads[None] - d.hi[rows[sl], None, :]),
-                             0.0)
-            near[sl] = (np.einsum("rbi,rbi->rb", gap, gap) <= reach[sl, None] ** 2).any(axis=1)
-        rows = rows[near]
-        if len(rows) == 0:
-            return
-        bead_field = BeadField(ck.bead_radius_mm, ck.pitch_mm)
-        bead_field.add(old)
-        bead_field.add(new)
-        count = np.array([len(d.poses[r][0]) for r in rows])
-        C = np.concatenate([d.poses[r][0] for r in rows])
-        R = np.concatenate([d.poses[r][1] for r in rows])
-        lin = np.repeat(self._reach_mm(rows), count)
-        touched = ck._undecided_batched(ck.dep_tree, bead_field.lower_bound, C, R, lin, np.zeros(len(C)))
-        d.valid[rows[np.logical_or.reduceat(touched, np.cumsum(count) - count)]] = False
+        near = near_beads(self.checker, d.lo[rows], d.hi[rows], [d.poses[r] for r in rows],
+                          reach_mm(self.checker, d.margin[rows]), beads)
+        d.valid[rows[near]] = False
 
     def _solve(self, first: int, last: int, collided: dict[int, dict]) -> None:
         """Solve the episode (levels first..last), record its collisions, apply its words."""
@@ -556,3 +564,77 @@ def _boxes(C: np.ndarray, R: np.ndarray, corners: np.ndarray) -> tuple[np.ndarra
     """World boxes (n, 3) lo and hi of the head-frame box ``corners`` at poses (tip C, rotation R)."""
     w = C[:, None, :] + np.einsum("nij,kj->nki", R, corners)
     return w.min(axis=1), w.max(axis=1)
+
+
+def move_poses(path: PathChecker, moves: Moves, hits: MoveHits, corners: np.ndarray | None):
+    """The poses of each move (a list of (tips (m, 3), rotations (m, 3, 3))): its samples, and
+    its sweep start where that is known; and the world boxes (n, 3) lo and hi of the deposit
+    tree's balls at them (``corners``: ``_head_corners``; None, None without beads)."""
+    n = len(moves)
+    known = moves.known_start
+    Cs, Rs = np.full((n, 3), np.nan), np.tile(np.eye(3), (n, 1, 1))
+    if known.any():
+        Ps, Ns, Rs[known] = path.forward(moves.w_start[known], moves.tcp[known])
+        Cs[known] = Ps + path.standoff_mm * Ns
+    ends = np.append(hits.first[1:], len(hits.C))
+    poses = []
+    lo = hi = None
+    if corners is not None:
+        lo, hi = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
+    for i in range(n):
+        C, R = hits.C[hits.first[i]:ends[i]], hits.R[hits.first[i]:ends[i]]
+        if known[i]:
+            C, R = np.vstack([Cs[i:i + 1], C]), np.concatenate([Rs[i:i + 1], R])
+        poses.append((C, R))
+        if corners is not None:
+            blo, bhi = _boxes(C, R, corners)
+            lo[i], hi[i] = blo.min(axis=0), bhi.max(axis=0)
+    return poses, lo, hi
+
+
+def reach_mm(checker: Checker, margin: np.ndarray) -> np.ndarray:
+    """How far (mm) beyond the deposit tree's balls bead material can be and still change the
+    result of moves with these largest sweep margins (``MoveHits.margin``): a sample's exact
+    test looks within the clearance and its sweep margin of the clipped head (which the balls
+    cover); its finer samples lie within that margin and add their own (smaller) one: twice the
+    margin, and two pitches more.
+
+    Not counted: the reach of the bounds (groups of samples up to GROUP_LEVELS_MM long, the bead
+    field's cells and box). They do not decide a sample, they only choose which samples get an
+    exact test; that choice can change the deposit clearance a colliding row reports (the
+    smallest of its tested hits), but it changes with where a check starts as well (the groups
+    are counted from the first sample of a check), so no reach would pin it."""
+    return 2.0 * np.asarray(margin) + 2.0 * checker.pitch_mm + checker.clearance_mm
+
+
+def near_beads(checker: Checker, lo: np.ndarray, hi: np.ndarray, poses: list, reach: np.ndarray,
+               beads: np.ndarray) -> np.ndarray:
+    """(n,) bool: moves whose head (the deposit tree's balls at ``poses``, inside the boxes lo..hi)
+    comes within ``reach`` (n,) of one of ``beads`` (a bead's surface). The boxes sort most moves
+    out; the rest are tested as the checker tests poses against beads, with a field of these
+    beads only (a lower bound: conservative, never "far" for a move that is near)."""
+    n = len(lo)
+    out = np.zeros(n, dtype=bool)
+    if n == 0 or len(beads) == 0:
+        return out
+    box_reach = reach + checker.bead_radius_mm  # from a ball to a bead's centre
+    gap = np.maximum(np.maximum(lo - beads.max(axis=0), beads.min(axis=0) - hi), 0.0)
+    idx = np.nonzero(np.einsum("ri,ri->r", gap, gap) <= box_reach ** 2)[0]  # near the beads' box
+    near = np.zeros(len(idx), dtype=bool)
+    step = max(1, (1 << 20) // len(beads))  # moves per batch of (move, bead) gaps
+    for a in range(0, len(idx), step):
+        sel = idx[a:a + step]
+        gap = np.maximum(np.maximum(lo[sel, None, :] - beads[None], beads[None] - hi[sel, None, :]), 0.0)
+        near[a:a + step] = (np.einsum("rbi,rbi->rb", gap, gap) <= box_reach[sel, None] ** 2).any(axis=1)
+    idx = idx[near]
+    if len(idx) == 0:
+        return out
+    bead_field = BeadField(checker.bead_radius_mm, checker.pitch_mm)
+    bead_field.add(beads)
+    count = np.array([len(poses[i][0]) for i in idx])
+    C = np.concatenate([poses[i][0] for i in idx])
+    R = np.concatenate([poses[i][1] for i in idx])
+    lin = np.repeat(reach[idx], count)
+    touched = checker._undecided_batched(checker.dep_tree, bead_field.lower_bound, C, R, lin, np.zeros(len(C)))
+    out[idx[np.logical_or.reduceat(touched, np.cumsum(count) - count)]] = True
+    return out
