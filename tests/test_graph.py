@@ -169,3 +169,42 @@ def test_a_search_cut_off_by_its_round_limit_says_so(monkeypatch):
     solution = GraphStrategy(SimpleNamespace(max_tilt=30.0, max_step=30.0, resolution=2.0)).solve(_ToyEpisode())
     assert 3 in solution.unresolved
     assert "4-round limit" in solution.reasons[3]
+
+
+class _BlockedEpisode(_ToyEpisode):
+    """Levels 3-7 collide as programmed; level 3 has no free orientation, levels 4-7 are free
+    wherever they tilt 6° or more. Counts its re-checks."""
+
+    def __init__(self):
+        super().__init__(levels=11)
+        self.colliding = np.arange(3, 8)
+        self.is_colliding = np.isin(self.rows, self.colliding)
+        self.rechecks = 0
+
+    def pose_free(self, level, N) -> np.ndarray:
+        level, N = np.asarray(level), N / np.linalg.norm(N, axis=1, keepdims=True)
+        tilt = np.degrees(np.arccos(np.clip(N[:, 2], -1.0, 1.0)))
+        return np.where(level == 3, False, np.where((level >= 4) & (level <= 7), tilt >= 6.0, True))
+
+    def recheck(self, words) -> np.ndarray:
+        self.rechecks += 1
+        return super().recheck(words)
+
+
+def test_the_run_held_by_a_block_left_colliding_is_given_up_in_one_round():
+    """Level 3 cannot be freed: every move out of it collides, and out of the levels after it as
+    long as they keep a colliding programmed pose. They are left with it, with that reason, in
+    one round (before, the search gave them up one re-check at a time)."""
+    from types import SimpleNamespace
+
+    from ncfix.correct.solve import GraphStrategy
+
+    ep = _BlockedEpisode()
+    solution = GraphStrategy(SimpleNamespace(max_tilt=30.0, max_step=30.0, resolution=2.0)).solve(ep)
+    assert solution.unresolved == [3, 4, 5, 6, 7, 8]  # 8 is free as programmed; its move starts at 7
+    assert "no free orientation" in solution.reasons[3]
+    assert all(solution.reasons[i] == "its move starts at the block before, which is left colliding"
+               for i in range(4, 9))
+    assert np.array_equal(solution.words[3:9], ep.programmed[3:9])
+    # One re-check finds the run held, one passes, then the open rounds (one at a time: 8 here).
+    assert ep.rechecks <= 2 + GraphStrategy.OPEN_ROUNDS, ep.rechecks

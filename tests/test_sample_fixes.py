@@ -12,7 +12,7 @@
   the output is one the report lists as unresolved;
 - idempotent: a clean output has nothing for ncfix to find (``--check`` on it: no collision), so a
   second run changes nothing; an output with unresolved blocks is run again and must come back
-  byte for byte (``NOT_IDEMPOTENT`` lists the known exception, checked to still fail: xfail);
+  byte for byte (``NOT_IDEMPOTENT`` would list known exceptions, checked to still fail: xfail);
 - the report's exit status follows its unresolved blocks.
 
 The 5,000-point programs are marked ``long`` (about 5-15 minutes each): ``pytest -m long``.
@@ -39,10 +39,9 @@ CONFIG = SAMPLES / "ncfix.toml"
 STANDOFF, PITCH, BEAD_R = 6.0, 0.5, 1.0
 THETA, BIG_THETA = 30.0, 30.0
 SWEEP_MOVES = 150  # changed moves whose sweeps the exact reference samples, at most
-# Known open problem (issue #5): where blocks stay unresolved, a second run may free more of them.
-NOT_IDEMPOTENT = {
-    ("bathtub_273_table_ac.nc", "graph"): "a second graph run on its output (blocks left unresolved) changes it",
-}
+# Known exceptions: (sample, strategy) -> why a second run on its output changes it. None now (the
+# graph on bathtub_273_table_ac was one until its search gave up a held run in one round).
+NOT_IDEMPOTENT: dict[tuple[str, str], str] = {}
 
 CASES = [
     ("bathtub_273.nc", "ijk", True),

@@ -256,6 +256,7 @@ class GraphStrategy:
         given_up: dict[int, np.ndarray] = {}
         reopens = 0
         capped = False  # the search ran out of rounds (MAX_ROUNDS) before it settled
+        programmed_free = None  # (L,) end poses as programmed free (tested when first needed)
         for _round in range(self.MAX_ROUNDS):
             eligible = (state == 1) | ((state == 0) & (promising | (open_rounds > 0)))
             allowed = valid & eligible
@@ -276,13 +277,21 @@ class GraphStrategy:
             bad = ep.recheck(words) & ~left
             # A move that starts at a pose left colliding collides whatever its end: the level
             # after it keeps its programmed orientation (given up: searched again if the level
-            # before is freed later), and is left colliding with it.
+            # before is freed later), and is left colliding with it. Where that programmed pose
+            # itself collides, so does every move out of it: the level after goes with it, and
+            # so on (else the search gives them up one round at a time).
             after_left = bad & np.concatenate([[False], left[:-1]])
             tilted = after_left & (pick != 0)
             if tilted.any():
-                for i in np.nonzero(tilted)[0]:
-                    given_up.setdefault(int(i), state[i].copy())
-                state[tilted, 1:] = 2
+                if programmed_free is None:
+                    programmed_free = ep.free(rows_l, ep.N0)
+                for i in np.nonzero(tilted)[0].tolist():
+                    while i < L and i not in given_up:
+                        given_up[i] = state[i].copy()
+                        state[i, 1:] = 2
+                        if programmed_free[i]:
+                            break
+                        i += 1
                 continue
             left |= after_left
             bad &= ~after_left
