@@ -33,9 +33,11 @@ EPA"; ``ncfix.correct.epa`` does the geometry):
    that did not collide and fails twice goes back to the program with its predecessor
    (``_hold``), for up to ``ROUNDS`` rounds. A level left colliding that a ramp passes through (a
    dropped level; the level after one left colliding, whose move starts inside the collision, as
-   ``GraphStrategy``) is pinned at its programmed orientation too, and the ramps are laid out
-   again; blocks still colliding with a tilt when the rounds end are given up the same way
-   (pinned, ``GIVEUPS`` times, ``GIVEUP_ROUNDS`` more rounds each). The answer is the re-checked
+   ``GraphStrategy``; and the colliding levels after it in a row, their moves starting where it
+   is left, pinned in the same round where a pinned pose collides itself) is pinned at its
+   programmed orientation too, and the ramps are laid out again; blocks still colliding with a
+   tilt when the rounds end are given up the same way (pinned, ``GIVEUPS`` times,
+   ``GIVEUP_ROUNDS`` more rounds each). The answer is the re-checked
    solution leaving the fewest blocks colliding, every one of them as programmed, that makes no
    block collide that did not (except after a block left colliding, as ``GraphStrategy``), else
    the program as written. Pinning costs fixes: a level pinned inside a run of tilted levels
@@ -231,6 +233,7 @@ class _EpisodeSolver:
         self._bead_cache: dict[int, np.ndarray | None] = {}
         self._reach_mm = model.head_reach_mm + model.bead_radius_mm
         self.fallback = True  # the answer is the program as written (no verified solution yet)
+        self._programmed_ok: np.ndarray | None = None  # (L,) end poses as programmed free
 
     # -- the solve -------------------------------------------------------------------------------
     def run(self):
@@ -254,9 +257,7 @@ class _EpisodeSolver:
             changed = np.linalg.norm(d, axis=1) > _TINY_RAD
             words = ep.words_of(self._normals(d), ~changed)
             bad = ep.recheck(words)
-            left = self._left_mask()
-            # A move that starts at a pose left colliding collides whatever its end.
-            left |= bad & np.concatenate([[False], left[:-1]])
+            left = self._held(self._left_mask(), bad)
             _debug(f"epa round {self.rounds}: {int(bad.sum())} colliding ({int((bad & ~ep.is_colliding).sum())} new), "
                    f"{int(left.sum())} left, fixed {len(self.fixed)}, dropped {len(self.dropped)}, "
                    f"hopeless {len(self.hopeless)}, searches {self.searches}, new at {np.nonzero(bad & ~ep.is_colliding)[0].tolist()} "
@@ -266,8 +267,13 @@ class _EpisodeSolver:
             # at its programmed orientation for good, and the ramps are laid out around it again.
             tilted = bad & left & changed
             if tilted.any():
-                for l in np.nonzero(tilted)[0]:
-                    self._pin(int(l))
+                for l in np.nonzero(tilted)[0].tolist():
+                    # Where the pinned pose collides itself, so does every move out of it: the
+                    # level after is pinned with it, and so on (else one round each).
+                    self._pin(l)
+                    while l + 1 < self.L and not self._programmed_free(l) and l + 1 not in self.holds:
+                        l += 1
+                        self._pin(l)
                 continue
             # Never hand back a solution that makes a block collide that did not, unless its move
             # starts at a block left colliding (as GraphStrategy; the stage reports it), nor one
@@ -286,7 +292,7 @@ class _EpisodeSolver:
                     break
                 giveups += 1
                 for l in np.nonzero(stuck)[0]:
-                    self._pin(int(l), self._reason(int(l), bad, left))
+                    self._pin(int(l), self._stuck(int(l)))
                 round_cap, layout_cap = self.rounds + GIVEUP_ROUNDS, layouts + 2 * GIVEUP_ROUNDS
                 stale = 0
                 continue
@@ -294,6 +300,22 @@ class _EpisodeSolver:
         rows = [int(ep.rows[i]) for i in np.nonzero(best_bad)[0]]
         reasons = {int(ep.rows[i]): self._reason(i, best_bad, best_left) for i in np.nonzero(best_bad)[0]}
         return Solution(best_words, rows, reasons)
+
+    @staticmethod
+    def _held(left: np.ndarray, bad: np.ndarray) -> np.ndarray:
+        """``left`` with every colliding level whose move starts at a level left colliding (a
+        move that starts at a pose left colliding collides whatever its end), and the colliding
+        levels after it in a row (their moves start where it is pinned: left with it)."""
+        out = left.copy()
+        for i in range(1, len(out)):
+            out[i] |= bad[i] & out[i - 1]
+        return out
+
+    def _programmed_free(self, level: int) -> bool:
+        """Whether the level's end pose as programmed is free (``Episode.free``; tested once)."""
+        if self._programmed_ok is None:
+            self._programmed_ok = self.ep.free(np.arange(self.L), self.N0)
+        return bool(self._programmed_ok[level])
 
     def _left_mask(self) -> np.ndarray:
         out = np.zeros(self.L, dtype=bool)
@@ -313,7 +335,7 @@ class _EpisodeSolver:
             return self.hopeless[i]
         if i in self.dropped:
             return self.dropped[i]
-        if i in self.gave_up:
+        if i in self.gave_up and not self.fallback:
             return self.gave_up[i]
         if i > 0 and bad[i - 1] and left is not None and left[i - 1]:
             return "its move starts at the block before, which is left colliding"
@@ -321,6 +343,10 @@ class _EpisodeSolver:
             return (f"no EPA tilt within {self.s.max_tilt:g}° (--max-tilt), ramped in "
                     f"{self.s.max_step:g}° steps (--max-step), kept every block around it free; "
                     "the episode is left as programmed")
+        return self._stuck(i)
+
+    def _stuck(self, i: int) -> str:
+        """Why a level still colliding with a tilt after the rounds is given up."""
         what = "the move into it" if i in self.end_free else "its sweep or the solution's own beads"
         return (f"still collides ({what}) after {self.rounds} rounds of larger EPA tilts within "
                 f"{self.s.max_tilt:g}° (--max-tilt); left as programmed")
