@@ -196,6 +196,24 @@ class Episode:
         return out
 
 
+@dataclass
+class _Search:
+    """One episode's lazy search (``GraphStrategy.solve``): the candidates and their graph, and
+    what the rounds found."""
+
+    ep: Episode
+    cands: np.ndarray  # (L, K, 3) candidate orientations of each level
+    valid: np.ndarray  # (L, K) bool: reachable, within Θ and the cone
+    graph: LayeredGraph
+    state: np.ndarray  # (L, K) int8: 0 untested, 1 free, 2 colliding
+    # (level, vertex) -> the vertices before it whose moves into it failed the re-check
+    fails: dict[tuple[int, int], set[int]] = field(default_factory=dict)
+    # Levels given up because the level before was left colliding: their states before that.
+    given_up: dict[int, np.ndarray] = field(default_factory=dict)
+    reopens: int = 0  # times given-up levels were searched again
+    programmed_free: np.ndarray | None = None  # (L,) end poses as programmed free (when first needed)
+
+
 class GraphStrategy:
     """Orientation graph + shortest path (seed steps 1–3, after Nishat et al.), searched lazily.
 
@@ -242,28 +260,21 @@ class GraphStrategy:
         cands, valid = level_candidates(self.grid, ep.N0, self.max_tilt)
         valid &= _cone(cands, ep, L)
         ext_c, ext_v, ext_p, limits, turns = _with_anchors(ep, cands, valid)
-        graph = LayeredGraph(ext_c, ext_v, ext_p, limits, turns=turns)
-        # state of every candidate: 0 untested, 1 free, 2 colliding
         state = np.zeros(valid.shape, dtype=np.int8)
         state[:, 0] = np.where(ep.is_colliding, 2, 1)  # detection tested the programmed moves
+        s = _Search(ep, cands, valid, LayeredGraph(ext_c, ext_v, ext_p, limits, turns=turns), state)
         promising = self._seed(ep, cands, valid, state)
         rows_l = np.arange(L)
         open_rounds = 0
         best = None
-        fails: dict[tuple[int, int], set[int]] = {}  # (level, vertex) -> vertices before it whose moves failed
-        # Levels given up because the level before was left colliding (their candidates' states
-        # before that); reopened when the level before is freed later (at most REOPENS times).
-        given_up: dict[int, np.ndarray] = {}
-        reopens = 0
         capped = False  # the search ran out of rounds (MAX_ROUNDS) before it settled
-        programmed_free = None  # (L,) end poses as programmed free (tested when first needed)
         for _round in range(self.MAX_ROUNDS):
             eligible = (state == 1) | ((state == 0) & (promising | (open_rounds > 0)))
             allowed = valid & eligible
             allowed[:, 0] = True  # the programmed orientation: free, or left colliding at a cost
             penalty = np.zeros((L + 2, valid.shape[1]))
             penalty[1:L + 1, 0] = np.where(state[:, 0] == 2, self.UNRESOLVED_COST, 0.0)
-            path = graph.cheapest(_anchored(allowed), penalty)
+            path = s.graph.cheapest(_anchored(allowed), penalty)
             if path is None:  # cannot happen while the programmed path is allowed; be safe
                 break
             pick = path[1:L + 1]
@@ -272,55 +283,22 @@ class GraphStrategy:
                 self._test_near(ep, cands, valid, state, np.nonzero(untested)[0], pick)
                 continue
             left = (pick == 0) & (state[:, 0] == 2)  # blocks left colliding
-            N = cands[rows_l, pick]
-            words = ep.words_of(N, pick == 0)
+            words = ep.words_of(cands[rows_l, pick], pick == 0)
             bad = ep.recheck(words) & ~left
-            # A move that starts at a pose left colliding collides whatever its end: the level
-            # after it keeps its programmed orientation (given up: searched again if the level
-            # before is freed later), and is left colliding with it. Where that programmed pose
-            # itself collides, so does every move out of it: the level after goes with it, and
-            # so on (else the search gives them up one round at a time).
+            # A move that starts at a pose left colliding collides whatever its end.
             after_left = bad & np.concatenate([[False], left[:-1]])
             tilted = after_left & (pick != 0)
             if tilted.any():
-                if programmed_free is None:
-                    programmed_free = ep.free(rows_l, ep.N0)
-                for i in np.nonzero(tilted)[0].tolist():
-                    while i < L and i not in given_up:
-                        given_up[i] = state[i].copy()
-                        state[i, 1:] = 2
-                        if programmed_free[i]:
-                            break
-                        i += 1
+                self._give_up(s, tilted)
                 continue
-            left |= after_left
+            left |= after_left  # kept as programmed: left colliding with the level before
             bad &= ~after_left
             if bad.any():
-                # The end poses were tested free: the moves into them (their sweeps, the path's own
-                # beads) are in the way. The edges between the two vertices' neighbourhoods on the
-                # grid go (they sweep the same way); a vertex whose moves fail from FAIL_SOURCES
-                # different vertices before it goes too (its own beads, not the way in).
-                for i in np.nonzero(bad)[0]:
-                    targets = self._near(cands, valid, i, pick[i])
-                    sources = self._near(cands, valid, i - 1, pick[i - 1]) if i > 0 else np.array([0])
-                    graph.ban(i + 1, sources, targets)
-                    if i == L - 1:  # or the move out of it, into the row after
-                        graph.ban(L + 1, targets, np.array([0]))
-                    fails.setdefault((int(i), int(pick[i])), set()).add(int(pick[i - 1]) if i > 0 else -1)
-                    if len(fails[(int(i), int(pick[i]))]) >= self.FAIL_SOURCES and not (pick[i] == 0 and
-                                                                                        state[i, 0] == 1):
-                        state[i, pick[i]] = 2
+                self._ban(s, bad, pick)
                 continue
             if best is None or left.sum() < best[1].sum():
                 best = (words, left)
-            # Given up after a level that is free now: reopen it, and the run given up after it.
-            stale = [i for i in given_up if not left[i - 1]]
-            if stale and reopens < self.REOPENS:
-                reopens += 1
-                for i in sorted(stale):
-                    while i in given_up:
-                        state[i] = given_up.pop(i)
-                        i += 1
+            if self._reopen(s, left):
                 open_rounds = 0
                 continue
             if not left.any() or open_rounds == 1:
@@ -329,34 +307,86 @@ class GraphStrategy:
             open_rounds = self.OPEN_ROUNDS if open_rounds == 0 else open_rounds - 1
         else:
             capped = True
-        limit = (f"the search stopped at its {self.MAX_ROUNDS}-round limit (an episode of {L} blocks) before "
-                 "a path freeing it passed the re-check")
         if best is None:
             rows = [int(r) for r in ep.colliding]
-            why = limit if capped else (f"no path keeps every step within {self.max_step:g}° (--max-step) "
-                                        f"and the tilt within {self.max_tilt:g}°")
+            why = self._limit(L) if capped else (f"no path keeps every step within {self.max_step:g}° (--max-step) "
+                                                 f"and the tilt within {self.max_tilt:g}°")
             return Solution(ep.programmed.copy(), rows, {r: why for r in rows})
         words, left = best
         words = blend_episode(ep, words, left)
         rows = [int(ep.rows[i]) for i in np.nonzero(left)[0]]
+        return Solution(words, rows, self._reasons(s, left, capped))
+
+    def _give_up(self, s: "_Search", tilted: np.ndarray) -> None:
+        """The tilted levels whose moves start at a pose left colliding keep their programmed
+        orientation (given up: searched again if the level before is freed later, ``_reopen``).
+        Where that programmed pose itself collides, so does every move out of it: the level after
+        goes with it, and so on (else the search gives them up one round at a time)."""
+        if s.programmed_free is None:
+            s.programmed_free = s.ep.free(np.arange(len(s.state)), s.ep.N0)
+        for i in np.nonzero(tilted)[0].tolist():
+            while i < len(s.state) and i not in s.given_up:
+                s.given_up[i] = s.state[i].copy()
+                s.state[i, 1:] = 2
+                if s.programmed_free[i]:
+                    break
+                i += 1
+
+    def _ban(self, s: "_Search", bad: np.ndarray, pick: np.ndarray) -> None:
+        """The end poses were tested free: the moves into them (their sweeps, the path's own beads)
+        are in the way. The edges between the two vertices' neighbourhoods on the grid go (they
+        sweep the same way); a vertex whose moves fail from FAIL_SOURCES different vertices before
+        it goes too (its own beads, not the way in)."""
+        L = len(pick)
+        for i in np.nonzero(bad)[0].tolist():
+            targets = self._near(s.cands, s.valid, i, pick[i])
+            sources = self._near(s.cands, s.valid, i - 1, pick[i - 1]) if i > 0 else np.array([0])
+            s.graph.ban(i + 1, sources, targets)
+            if i == L - 1:  # or the move out of it, into the row after
+                s.graph.ban(L + 1, targets, np.array([0]))
+            failed = s.fails.setdefault((i, int(pick[i])), set())
+            failed.add(int(pick[i - 1]) if i > 0 else -1)
+            if len(failed) >= self.FAIL_SOURCES and not (pick[i] == 0 and s.state[i, 0] == 1):
+                s.state[i, pick[i]] = 2
+
+    def _reopen(self, s: "_Search", left: np.ndarray) -> bool:
+        """Levels given up after a level that this path frees are searched again, with the run
+        given up after them (at most REOPENS times); whether any was."""
+        stale = [i for i in s.given_up if not left[i - 1]]
+        if not stale or s.reopens >= self.REOPENS:
+            return False
+        s.reopens += 1
+        for i in sorted(stale):
+            while i in s.given_up:
+                s.state[i] = s.given_up.pop(i)
+                i += 1
+        return True
+
+    def _limit(self, L: int) -> str:
+        return (f"the search stopped at its {self.MAX_ROUNDS}-round limit (an episode of {L} blocks) before "
+                "a path freeing it passed the re-check")
+
+    def _reasons(self, s: "_Search", left: np.ndarray, capped: bool) -> dict[int, str]:
+        """Why each level left colliding is: by what its candidates' states say."""
         reasons = {}
-        for i in np.nonzero(left)[0]:
-            if i > 0 and left[i - 1] and (i in given_up or state[i, 0] == 1):
-                reasons[int(ep.rows[i])] = "its move starts at the block before, which is left colliding"
+        for i in np.nonzero(left)[0].tolist():
+            row = int(s.ep.rows[i])
+            if i > 0 and left[i - 1] and (i in s.given_up or s.state[i, 0] == 1):
+                reasons[row] = "its move starts at the block before, which is left colliding"
                 continue
-            free_any = (valid[i] & (state[i] == 1)).any()
-            untested = (valid[i] & (state[i] == 0)).any()
+            free_any = (s.valid[i] & (s.state[i] == 1)).any()
+            untested = (s.valid[i] & (s.state[i] == 0)).any()
             if not free_any and not untested:
                 why = f"no free orientation within {self.max_tilt:g}° (--max-tilt) and the machine's limits"
             elif capped:
-                why = limit
+                why = self._limit(len(left))
             elif free_any:
                 why = (f"a free orientation exists, but no path to it keeps every step within {self.max_step:g}° "
                        f"(--max-step) while the blocks around it stay free")
             else:
                 why = f"no free orientation found within {self.max_tilt:g}° (--max-tilt) among those tested"
-            reasons[int(ep.rows[i])] = why
-        return Solution(words, rows, reasons)
+            reasons[row] = why
+        return reasons
 
     def _near(self, cands, valid, level: int, vertex: int) -> np.ndarray:
         """The valid candidates of a level within 1.5 resolutions of one of them (itself included)."""
