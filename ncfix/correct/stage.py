@@ -132,7 +132,7 @@ class Rechecks:
         self.last: Moves | None = None  # the moves of the last re-check (copies)
         self.bad = self.margin = self.lo = self.hi = None
         self.poses: list = []
-        self.checked = self.reused = 0  # moves checked, moves whose result was reused
+        self.checked = 0  # moves checked (the others' results were reused)
 
     def check(self, moves: Moves) -> np.ndarray:
         """(n,) bool: the moves that collide (end pose or sweep, the parts and every bead laid
@@ -166,7 +166,6 @@ class Rechecks:
             self.poses[s:e] = poses
             if lo is not None:
                 self.lo[s:e], self.hi[s:e] = lo, hi
-        self.reused += n - int(todo.sum()) if self.last is not None else 0
         self.last = Moves(*(None if v is None else np.array(v) for v in (moves.w_start, moves.w_end, moves.tcp,
                                                                           moves.known_start, moves.deposit,
                                                                           moves.arc)))
