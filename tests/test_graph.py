@@ -133,6 +133,9 @@ class _ToyEpisode:
     def free(self, level, N) -> np.ndarray:
         return self.pose_free(level, N)
 
+    def programmed_free(self) -> np.ndarray:
+        return self.pose_free(self.rows, self.N0)
+
     def words_of(self, N, programmed) -> np.ndarray:
         return np.where(programmed[:, None], self.programmed, N)
 

@@ -233,7 +233,6 @@ class _EpisodeSolver:
         self._bead_cache: dict[int, np.ndarray | None] = {}
         self._reach_mm = model.head_reach_mm + model.bead_radius_mm
         self.fallback = True  # the answer is the program as written (no verified solution yet)
-        self._programmed_ok: np.ndarray | None = None  # (L,) end poses as programmed free
 
     # -- the solve -------------------------------------------------------------------------------
     def run(self):
@@ -271,7 +270,7 @@ class _EpisodeSolver:
                     # Where the pinned pose collides itself, so does every move out of it: the
                     # level after is pinned with it, and so on (else one round each).
                     self._pin(l)
-                    while l + 1 < self.L and not self._programmed_free(l) and l + 1 not in self.holds:
+                    while l + 1 < self.L and not self.ep.programmed_free()[l] and l + 1 not in self.holds:
                         l += 1
                         self._pin(l)
                 continue
@@ -310,12 +309,6 @@ class _EpisodeSolver:
         for i in range(1, len(out)):
             out[i] |= bad[i] & out[i - 1]
         return out
-
-    def _programmed_free(self, level: int) -> bool:
-        """Whether the level's end pose as programmed is free (``Episode.free``; tested once)."""
-        if self._programmed_ok is None:
-            self._programmed_ok = self.ep.free(np.arange(self.L), self.N0)
-        return bool(self._programmed_ok[level])
 
     def _left_mask(self) -> np.ndarray:
         out = np.zeros(self.L, dtype=bool)

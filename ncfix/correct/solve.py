@@ -94,6 +94,7 @@ class Episode:
         self.bead_pts, self.bead_seq = self._programmed_beads()
         self.tests = 0  # candidate poses tested
         self.checks = Rechecks(stage)  # re-checks, each reusing what the last one found
+        self._programmed_free: np.ndarray | None = None
 
     def _prev_programmed(self) -> np.ndarray:
         r = self.stage.rows
@@ -158,6 +159,12 @@ class Episode:
         self.tests += len(idx)
         return out
 
+    def programmed_free(self) -> np.ndarray:
+        """(L,) bool: the levels' end poses as programmed are free (``free``; tested once)."""
+        if self._programmed_free is None:
+            self._programmed_free = self.free(np.arange(len(self.rows)), self.N0)
+        return self._programmed_free
+
     def words_of(self, N: np.ndarray, programmed: np.ndarray) -> np.ndarray:
         """The words of a whole solution (L, 3) in program order: rows keeping their programmed
         orientation keep their words exactly; rotary axes take the branch nearest the block before."""
@@ -211,7 +218,6 @@ class _Search:
     # Levels given up because the level before was left colliding: their states before that.
     given_up: dict[int, np.ndarray] = field(default_factory=dict)
     reopens: int = 0  # times given-up levels were searched again
-    programmed_free: np.ndarray | None = None  # (L,) end poses as programmed free (when first needed)
 
 
 class GraphStrategy:
@@ -322,13 +328,12 @@ class GraphStrategy:
         orientation (given up: searched again if the level before is freed later, ``_reopen``).
         Where that programmed pose itself collides, so does every move out of it: the level after
         goes with it, and so on (else the search gives them up one round at a time)."""
-        if s.programmed_free is None:
-            s.programmed_free = s.ep.free(np.arange(len(s.state)), s.ep.N0)
+        programmed_free = s.ep.programmed_free()
         for i in np.nonzero(tilted)[0].tolist():
             while i < len(s.state) and i not in s.given_up:
                 s.given_up[i] = s.state[i].copy()
                 s.state[i, 1:] = 2
-                if s.programmed_free[i]:
+                if programmed_free[i]:
                     break
                 i += 1
 
