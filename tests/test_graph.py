@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ncfix.correct.candidates import SphereGrid, level_candidates
-from ncfix.correct.graph import cheapest_path
+from ncfix.correct.graph import LayeredGraph, cheapest_path
 from ncfix.geometry.frames import angle_between_deg, rotation_from_z
 
 
@@ -76,7 +76,6 @@ def test_wide_steps_search_every_edge_and_banned_edges_are_avoided():
     before: the nearest-neighbour edges would find no path through them (the bathtub sample
     left 56 blocks colliding so); the dense levels search every edge within θ. A banned edge
     (a move found to collide) is never taken."""
-    from ncfix.correct.graph import LayeredGraph
 
     grid = SphereGrid(1.0)
     programmed = np.tile([0.0, 0.0, 1.0], (5, 1))
@@ -211,3 +210,29 @@ def test_the_run_held_by_a_block_left_colliding_is_given_up_in_one_round():
     assert np.array_equal(solution.words[3:9], ep.programmed[3:9])
     # One re-check finds the run held, one passes, then the open rounds (one at a time: 8 here).
     assert ep.rechecks <= 2 + GraphStrategy.OPEN_ROUNDS, ep.rechecks
+
+
+def _about_y(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+
+
+def test_a_step_within_the_limit_is_allowed_where_the_program_turns():
+    """The program turns by 40° into level 1 (θ = 10°). A candidate 8° from the orientation
+    before is 32° off the turned one: the turned rule alone refuses it, but a step within θ is
+    within the contract wherever the program turns, so with ``plain_limit`` it is an edge (its
+    weight is still the turned step)."""
+    z = np.array([0.0, 0.0, 1.0])
+    turned, near = _about_y(40.0) @ z, _about_y(8.0) @ z
+    cands = np.array([[z, z], [turned, near], [near, near]])
+    valid = np.ones((3, 2), dtype=bool)
+    turns = np.stack([np.eye(3), _about_y(40.0), np.eye(3)])
+    allowed = np.array([[True, False], [False, True], [True, False]])
+    strict = LayeredGraph(cands, valid, cands[:, 0], 10.0, turns=turns)
+    assert strict.cheapest(allowed) is None
+    relaxed = LayeredGraph(cands, valid, cands[:, 0], 10.0, turns=turns, plain_limit=10.0)
+    assert relaxed.cheapest(allowed).tolist() == [0, 1, 0]
+    step, ok = relaxed.steps(1, cands[0], cands[1])
+    assert ok[:, 0].tolist() == [True, True] and np.allclose(step[:, 0], [0.0, 32.0], atol=1e-5)
+    # Not at a level the program does not turn into: there the step is the plain angle already.
+    assert relaxed.plain[2] < 0 and not relaxed.steps(2, cands[1, :1], cands[2, :1])[1].any()

@@ -36,12 +36,17 @@ class LayeredGraph:
     turns : optional (L, 3, 3) rotations; the step into level l is then measured from the
         previous orientation turned by turns[l] (where the program itself turns, what ncfix adds to
         the turn); the identity measures the plain angle.
+    plain_limit : optional (L,) degrees, with ``turns``: where level l turns (turns[l] is not the
+        identity), a step whose plain angle is at most plain_limit[l] is allowed too, whatever its
+        turned step (a step within θ is within the contract wherever the program turns). Its
+        weight is still the turned step. Such levels are searched densely.
     penalty : optional (L, K) cost added to a vertex (e.g. for one left colliding).
     """
 
     def __init__(self, candidates: np.ndarray, valid: np.ndarray, programmed: np.ndarray,
                  max_step_deg: float | np.ndarray, deviation_weight: float = DEVIATION_WEIGHT,
-                 neighbours: int = NEIGHBOURS, turns: np.ndarray | None = None):
+                 neighbours: int = NEIGHBOURS, turns: np.ndarray | None = None,
+                 plain_limit: float | np.ndarray | None = None):
         self.candidates = np.asarray(candidates, dtype=np.float64)
         levels, k = valid.shape
         self.valid = valid.copy()
@@ -55,6 +60,11 @@ class LayeredGraph:
         # Where the step limit is wide, the nearest ``neighbours`` sources would cut most edges
         # off: those levels are searched densely, over the allowed vertices of a search.
         self.dense = limit > DENSE_ABOVE_DEG
+        self.plain = None
+        if self.turns is not None and plain_limit is not None:
+            turning = np.abs(self.turns - np.eye(3)).max(axis=(1, 2)) > 0.0
+            self.plain = np.where(turning, np.broadcast_to(np.asarray(plain_limit, dtype=np.float64), (levels,)), -1.0)
+            self.dense |= turning
         self.banned: dict[int, set[tuple[int, int]]] = {}
         self._ban_arrays: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # of ``banned``, made when searched
         # Per level l >= 1: for each vertex, up to ``neighbours`` sources at level l-1 and the angle.
@@ -140,6 +150,16 @@ class LayeredGraph:
             path[level - 1] = back[level, path[level]]
         return path
 
+    def steps(self, level: int, sources: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The steps from orientations ``sources`` (a, 3) at level - 1 to ``targets`` (b, 3) at
+        ``level``: their weights (b, a) in degrees (the turned step) and whether each is allowed."""
+        turned = sources @ self.turns[level].T if self.turns is not None else sources
+        step = np.degrees(np.arccos(np.clip(targets @ turned.T, -1.0, 1.0)))
+        allowed = step <= self.limit[level] * (1.0 + 1e-12)
+        if self.plain is not None and self.plain[level] >= 0.0:
+            plain = np.degrees(np.arccos(np.clip(targets @ sources.T, -1.0, 1.0)))
+            allowed |= plain <= self.plain[level] * (1.0 + 1e-12)
+        return step, allowed
 
     def _ban_pairs(self, level: int) -> tuple[np.ndarray, np.ndarray] | None:
         """The banned edges into ``level`` as (sources, targets) arrays, or None."""
@@ -159,11 +179,8 @@ class LayeredGraph:
         dst = np.flatnonzero(ok[level])
         if len(src) == 0 or len(dst) == 0:
             return best, back
-        sources = self.candidates[level - 1][src]
-        if self.turns is not None:
-            sources = sources @ self.turns[level].T
-        step = np.degrees(np.arccos(np.clip(self.candidates[level][dst] @ sources.T, -1.0, 1.0)))
-        total = np.where(step <= self.limit[level] * (1.0 + 1e-12), cost[src][None, :] + step, np.inf)
+        step, admitted = self.steps(level, self.candidates[level - 1][src], self.candidates[level][dst])
+        total = np.where(admitted, cost[src][None, :] + step, np.inf)
         banned = self._ban_pairs(level)
         if banned is not None:
             a, b = banned

@@ -268,7 +268,8 @@ class GraphStrategy:
         ext_c, ext_v, ext_p, limits, turns = _with_anchors(ep, cands, valid)
         state = np.zeros(valid.shape, dtype=np.int8)
         state[:, 0] = np.where(ep.is_colliding, 2, 1)  # detection tested the programmed moves
-        s = _Search(ep, cands, valid, LayeredGraph(ext_c, ext_v, ext_p, limits, turns=turns), state)
+        s = _Search(ep, cands, valid, LayeredGraph(ext_c, ext_v, ext_p, limits, turns=turns,
+                                                      plain_limit=self.max_step + STEP_SLACK_DEG), state)
         promising = self._seed(ep, cands, valid, state)
         rows_l = np.arange(L)
         open_rounds = 0
