@@ -129,8 +129,16 @@ class _ToyEpisode:
         out[level == 4] = (tilt >= 6.0)[level == 4]
         return out
 
-    def free(self, level, N) -> np.ndarray:
+    start_known = True
+
+    def free(self, level, N, beads=True) -> np.ndarray:
         return self.pose_free(level, N)
+
+    def orient(self, level, N):
+        return N / np.linalg.norm(N, axis=1, keepdims=True), None, np.ones(len(N), dtype=bool)
+
+    def moves_hit_parts(self, level, start_words, N) -> np.ndarray:
+        return ~self.pose_free(np.full(len(N), level), N) | ~self.pose_free(np.full(len(N), level - 1), start_words)
 
     def programmed_free(self) -> np.ndarray:
         return self.pose_free(self.rows, self.N0)
@@ -209,6 +217,43 @@ def test_the_run_held_by_a_block_left_colliding_is_given_up_in_one_round():
                for i in range(4, 9))
     assert np.array_equal(solution.words[3:9], ep.programmed[3:9])
     # One re-check finds the run held, one passes, then the open rounds (one at a time: 8 here).
+    assert ep.rechecks <= 2 + GraphStrategy.OPEN_ROUNDS, ep.rechecks
+
+
+class _CornerEpisode(_BlockedEpisode):
+    """As ``_BlockedEpisode``, but level 3 is free in ``_ToyEpisode``'s narrow band, and every
+    move into it collides (as a move across a corner of the part does, whatever its end poses)."""
+
+    def pose_free(self, level, N) -> np.ndarray:
+        level, N = np.asarray(level), N / np.linalg.norm(N, axis=1, keepdims=True)
+        tilt = np.degrees(np.arccos(np.clip(N[:, 2], -1.0, 1.0)))
+        azimuth = np.degrees(np.abs(np.arctan2(N[:, 1], N[:, 0])))
+        band = (tilt >= 9.0) & (tilt <= 10.5) & (azimuth <= 20.0)
+        return np.where(level == 3, band, np.where((level >= 4) & (level <= 7), tilt >= 6.0, True))
+
+    def moves_hit_parts(self, level, start_words, N) -> np.ndarray:
+        return np.full(len(N), level == 3) | super().moves_hit_parts(level, start_words, N)
+
+    def recheck(self, words) -> np.ndarray:
+        bad = super().recheck(words)
+        bad[3] = True
+        return bad
+
+
+def test_a_block_no_move_can_free_is_left_at_once_with_why():
+    """Level 3's end poses are free at a tilt, but every move into them collides. The search
+    checks those moves once, leaves the block as programmed with that reason, and settles in a
+    few re-checks (before, it banned the moves a neighbourhood at a time until its round limit,
+    and the reason named the limit)."""
+    from types import SimpleNamespace
+
+    from ncfix.correct.solve import GraphStrategy
+
+    ep = _CornerEpisode()
+    solution = GraphStrategy(SimpleNamespace(max_tilt=30.0, max_step=30.0, resolution=2.0)).solve(ep)
+    assert solution.unresolved == [3, 4, 5, 6, 7, 8]
+    assert solution.reasons[3].startswith("no move frees it"), solution.reasons[3]
+    assert np.array_equal(solution.words[3:9], ep.programmed[3:9])
     assert ep.rechecks <= 2 + GraphStrategy.OPEN_ROUNDS, ep.rechecks
 
 

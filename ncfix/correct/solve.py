@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ncfix.collision.deposit import BeadStore
+from ncfix.collision.path import Moves
 from ncfix.correct.candidates import SphereGrid, level_candidates
 from ncfix.correct.graph import LayeredGraph
 from ncfix.correct.stage import Rechecks
@@ -142,10 +144,11 @@ class Episode:
                     R[sel] = self.kin.forward(words[sel], tcp=flag)[2]
         return words, R, ok
 
-    def free(self, level: np.ndarray, N: np.ndarray) -> np.ndarray:
+    def free(self, level: np.ndarray, N: np.ndarray, beads: bool = True) -> np.ndarray:
         """(m,) True where orientation N at that level is reachable and its end pose is free of the
         parts and of the (programmed) beads laid up to that level: the bounds first, the exact
-        test where they cannot decide (``Checker.poses_free``)."""
+        test where they cannot decide (``Checker.poses_free``). Without ``beads``, of the parts
+        and the beads laid before the episode only (those no solution changes)."""
         words, R, ok = self.orient(level, N)
         out = np.zeros(len(level), dtype=bool)
         if not ok.any():
@@ -154,8 +157,8 @@ class Episode:
         lv = np.asarray(level)[idx]
         P = self.path.forward(words[idx], self.tcp[lv])[0]
         C = P + self.h * (N[idx] / np.linalg.norm(N[idx], axis=1, keepdims=True))
-        out[idx] = self.checker.poses_free(C, R[idx], lv.astype(np.int64), self.stage.store, self.bead_pts,
-                                           self.bead_seq)
+        pts, seq = (self.bead_pts, self.bead_seq) if beads else (self.bead_pts[:0], self.bead_seq[:0])
+        out[idx] = self.checker.poses_free(C, R[idx], lv.astype(np.int64), self.stage.store, pts, seq)
         self.tests += len(idx)
         return out
 
@@ -164,6 +167,24 @@ class Episode:
         if self._programmed_free is None:
             self._programmed_free = self.free(np.arange(len(self.rows)), self.N0)
         return self._programmed_free
+
+    def moves_hit_parts(self, level: int, start_words: np.ndarray, N: np.ndarray) -> np.ndarray:
+        """(m,) bool: the moves into ``level`` from start_words (m, k) to orientation N (m, 3)
+        (its words on the branch nearest each start) hit a part, at the end pose or on the way.
+        Beads are not looked at."""
+        row = int(self.rows[level])
+        r = self.stage.rows
+        m = len(N)
+        if self.is_vector:
+            end = self.orient(np.full(m, level), N)[0]
+        else:
+            P = self.C0[level] - self.h * N if self.pivot_tip else np.repeat(self.P0[level][None, :], m, axis=0)
+            end = np.array([self.kin.inverse(P[j], N[j], start_words[j], tcp=bool(self.tcp[level])) for j in range(m)])
+        moves = Moves(start_words, end, np.repeat(r.tcp[row:row + 1], m), np.repeat(r.known_start[row:row + 1], m),
+                      np.zeros(m, dtype=bool), np.repeat(r.arc[row:row + 1], m, axis=0))
+        hits, _ = self.path.check(moves, BeadStore(0.0), 0, commit=False)
+        self.stage.samples += hits.samples
+        return hits.part_hit.any(axis=1)
 
     def words_of(self, N: np.ndarray, programmed: np.ndarray) -> np.ndarray:
         """The words of a whole solution (L, 3) in program order: rows keeping their programmed
@@ -218,6 +239,10 @@ class _Search:
     # Levels given up because the level before was left colliding: their states before that.
     given_up: dict[int, np.ndarray] = field(default_factory=dict)
     reopens: int = 0  # times given-up levels were searched again
+    # Levels left colliding that ``_prove_stuck`` tried, and why those it marked are stuck.
+    proved: set[int] = field(default_factory=set)
+    stuck: dict[int, str] = field(default_factory=dict)
+    part_free: dict[int, np.ndarray] = field(default_factory=dict)  # ``GraphStrategy._part_free``
 
 
 class GraphStrategy:
@@ -253,6 +278,7 @@ class GraphStrategy:
     UNRESOLVED_COST = 1e4  # per block left colliding; far above any tilt or step cost
     FAIL_SOURCES = 3  # a vertex whose moves fail from this many vertices before it is dropped
     REOPENS = 2  # searches again with the levels given up after a level since freed
+    PROOF_PAIRS = 4096  # moves checked at most to show that no move frees a level (``_prove_stuck``)
 
     def __init__(self, options):
         self.max_tilt = float(options.max_tilt)
@@ -290,6 +316,8 @@ class GraphStrategy:
                 self._test_near(ep, cands, valid, state, np.nonzero(untested)[0], pick)
                 continue
             left = (pick == 0) & (state[:, 0] == 2)  # blocks left colliding
+            if self._prove_stuck(s, left):
+                continue
             words = ep.words_of(cands[rows_l, pick], pick == 0)
             bad = ep.recheck(words) & ~left
             # A move that starts at a pose left colliding collides whatever its end.
@@ -323,6 +351,61 @@ class GraphStrategy:
         words = blend_episode(ep, words, left)
         rows = [int(ep.rows[i]) for i in np.nonzero(left)[0]]
         return Solution(words, rows, self._reasons(s, left, capped))
+
+    def _prove_stuck(self, s: "_Search", levels: np.ndarray) -> bool:
+        """Mark those of ``levels`` (L,) bool that no move can free: the search stops trying them
+        (else its rounds go there, lazily, up to MAX_ROUNDS) and their reason says why.
+
+        At such a level and the level before, every valid candidate is tested against the parts
+        and the beads laid before the episode (what no solution changes); every move between a
+        free candidate before and a free one at the level, within the step limits, is checked
+        against the parts (end pose and sweep). When each collides, no path of candidates frees
+        the level, whatever the beads do. Tried once per level, when at most PROOF_PAIRS moves
+        are to be checked; whether any level was marked."""
+        ep, marked = s.ep, False
+        for i in np.nonzero(levels)[0].tolist():
+            if i in s.proved or i in s.given_up or (i == 0 and not ep.start_known):
+                continue
+            s.proved.add(i)
+            to = self._part_free(s, i)
+            if len(to) > self.PROOF_PAIRS:
+                continue
+            if i == 0:
+                starts, start_words = np.array([0]), ep.before_words[None, :]
+            else:
+                starts = self._part_free(s, i - 1)
+                if not len(starts):  # held by the level before, not stuck on its own
+                    continue
+                start_words = ep.orient(np.full(len(starts), i - 1), s.cands[i - 1, starts])[0]
+            sources = s.graph.candidates[i][starts]  # level i of the graph is episode level i - 1
+            _, allowed = s.graph.steps(i + 1, sources, s.cands[i, to])
+            b, a = np.nonzero(allowed)
+            if len(a) > self.PROOF_PAIRS:
+                continue
+            if len(a) and not ep.moves_hit_parts(i, start_words[a], s.cands[i, to[b]]).all():
+                continue
+            if not len(to):
+                s.stuck[i] = f"no free orientation within {self.max_tilt:g}° (--max-tilt) and the machine's limits"
+            elif not len(a):
+                s.stuck[i] = (f"no move frees it: none of its {len(to)} orientations free of the parts within "
+                              f"{self.max_tilt:g}° (--max-tilt) is within {self.max_step:g}° (--max-step) of the "
+                              f"{len(starts)} of the block before")
+            else:
+                s.stuck[i] = (f"no move frees it: its {len(to)} orientations free of the parts within "
+                              f"{self.max_tilt:g}° (--max-tilt) are reached from the {len(starts)} of the block "
+                              f"before, within {self.max_step:g}° (--max-step), only through the part (each such "
+                              "move collides)")
+            s.state[i, 1:] = 2
+            marked = True
+        return marked
+
+    def _part_free(self, s: "_Search", level: int) -> np.ndarray:
+        """The valid candidates of a level free of the parts and the beads laid before the episode
+        (tested once per level)."""
+        if level not in s.part_free:
+            idx = np.flatnonzero(s.valid[level])
+            s.part_free[level] = idx[s.ep.free(np.full(len(idx), level), s.cands[level, idx], beads=False)]
+        return s.part_free[level]
 
     def _give_up(self, s: "_Search", tilted: np.ndarray) -> None:
         """The tilted levels whose moves start at a pose left colliding keep their programmed
@@ -377,6 +460,9 @@ class GraphStrategy:
         reasons = {}
         for i in np.nonzero(left)[0].tolist():
             row = int(s.ep.rows[i])
+            if i in s.stuck:
+                reasons[row] = s.stuck[i]
+                continue
             if i > 0 and left[i - 1] and (i in s.given_up or s.state[i, 0] == 1):
                 reasons[row] = "its move starts at the block before, which is left colliding"
                 continue
