@@ -116,11 +116,17 @@ class Episode:
         return np.concatenate(pts) if pts else np.zeros((0, 3)), np.concatenate(seq) if seq else np.zeros(0, np.int64)
 
     # -- the machine -----------------------------------------------------------------------------
+    def point(self, level: np.ndarray, N: np.ndarray) -> np.ndarray:
+        """(m, 3) the programmed point for orientation N (m, 3) at levels (m,): P′ = C − h·N′ (the
+        tip stays, ``--pivot tip``) or P as programmed (``--pivot point``)."""
+        level = np.asarray(level, dtype=np.int64)
+        return self.C0[level] - self.h * N if self.pivot_tip else self.P0[level]
+
     def orient(self, level: np.ndarray, N: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Words (m, k), head rotation (m, 3, 3) and reachability (m,) of orientation N at levels."""
         level = np.asarray(level, dtype=np.int64)
         N = N / np.linalg.norm(N, axis=1, keepdims=True)
-        P = self.C0[level] - self.h * N if self.pivot_tip else self.P0[level]
+        P = self.point(level, N)
         m = len(level)
         k = self.programmed.shape[1]
         if self.is_vector:
@@ -178,7 +184,7 @@ class Episode:
         if self.is_vector:
             end = self.orient(np.full(m, level), N)[0]
         else:
-            P = self.C0[level] - self.h * N if self.pivot_tip else np.repeat(self.P0[level][None, :], m, axis=0)
+            P = self.point(np.full(m, level), N)
             end = np.array([self.kin.inverse(P[j], N[j], start_words[j], tcp=bool(self.tcp[level])) for j in range(m)])
         moves = Moves(start_words, end, np.repeat(r.tcp[row:row + 1], m), np.repeat(r.known_start[row:row + 1], m),
                       np.zeros(m, dtype=bool), np.repeat(r.arc[row:row + 1], m, axis=0))
@@ -196,7 +202,7 @@ class Episode:
                 if self.is_vector:
                     words[i] = self.orient(np.array([i]), N[i:i + 1])[0][0]
                 else:
-                    P = self.C0[i] - self.h * N[i] if self.pivot_tip else self.P0[i]
+                    P = self.point(np.array([i]), N[i:i + 1])[0]
                     try:
                         words[i] = self.kin.inverse(P, N[i], previous, tcp=bool(self.tcp[i]))
                     except Unreachable:
