@@ -296,3 +296,15 @@ def test_the_head_is_tilted_away_from_what_it_printed(made, head):
     _check(data, out, report, free_from=first_pass, is_free=lambda C, R: not ref.bead_collides(C, R, beads, 1.0),
            **limits)
     print(f"\nepa deposit: {made[-1].last}")
+
+
+def test_the_graph_leaves_the_blocks_programmed_where_max_tilt_is_below_its_coarse_spacing(tmp_path):
+    # Θ = 1° holds no point of the graph's coarse grid (4 resolutions apart): its first tests
+    # are empty (this crashed), and no orientation within 1° frees the wall's blocks.
+    data, wall = _pass_program()
+    wall.export(tmp_path / "wall.stl")
+    out, report = _run(data, part=(str(tmp_path / "wall.stl"),), bead_radius=0.0, strategy="graph",
+                       max_tilt=1.0, max_step=0.5)
+    assert report.exit_code == 1 and out == data and report.changes == []
+    assert [u["line"] for u in report.unresolved] == [c["line"] for c in report.collisions]
+    assert "--max-tilt" in report.unresolved[0]["reason"]

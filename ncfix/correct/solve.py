@@ -506,8 +506,9 @@ class GraphStrategy:
             take = np.unique(idx[near])
             take = take[state[lv, take] == 0]
             lv_all.append(np.full(len(take), lv)), ci_all.append(take)
-        lv, ci = np.concatenate(lv_all), np.concatenate(ci_all)
-        state[lv, ci] = np.where(ep.free(lv, cands[lv, ci]), 1, 2)
+        if lv_all:  # none where Θ is below the coarse grid's spacing
+            lv, ci = np.concatenate(lv_all), np.concatenate(ci_all)
+            state[lv, ci] = np.where(ep.free(lv, cands[lv, ci]), 1, 2)
         promising = np.zeros((L, K), dtype=bool)
         for lv in range(L):
             tested = np.flatnonzero(valid[lv] & (state[lv] > 0))
