@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from ncfix.correct.candidates import SphereGrid, level_candidates
-from ncfix.correct.graph import LayeredGraph, cheapest_path
+from ncfix.correct.graph import LayeredGraph, _dense_min, cheapest_path
 from ncfix.geometry.frames import angle_between_deg, rotation_from_z
 
 
@@ -281,3 +282,38 @@ def test_a_step_within_the_limit_is_allowed_where_the_program_turns():
     assert ok[:, 0].tolist() == [True, True] and np.allclose(step[:, 0], [0.0, 32.0], atol=1e-5)
     # Not at a level the program does not turn into: there the step is the plain angle already.
     assert relaxed.plain[2] < 0 and not relaxed.steps(2, cands[1, :1], cands[2, :1])[1].any()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_dense_levels_pick_what_every_pair_says(seed):
+    # The compiled dense step (sources by cost, stopping early) against every pair's total at
+    # once: the same cost and source for every target, with turns, plain steps and bans.
+
+    rng = np.random.default_rng(seed)
+    a, b = 300, 200
+
+    def unit(n):
+        v = rng.normal(size=(n, 3)) * [0.3, 0.3, 1.0] + [0.0, 0.0, 2.0]
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    sources, targets = unit(a), unit(b)
+    turn = _about_y(25.0)
+    turned = sources @ turn.T
+    cost = np.round(rng.uniform(0.0, 40.0, a), 1)  # ties, on purpose
+    limit, plain = 12.0, 9.0 if seed % 2 else -1.0
+    banned = rng.random((b, a)) < 0.2 if seed >= 2 else np.zeros((0, 0), dtype=bool)
+    total, pick = _dense_min(targets, turned, sources, cost, np.argsort(cost, kind="stable"), limit, plain, banned)
+
+    step = np.degrees(np.arccos(np.clip(targets @ turned.T, -1.0, 1.0)))
+    ok = step <= limit
+    if plain >= 0:
+        ok |= np.degrees(np.arccos(np.clip(targets @ sources.T, -1.0, 1.0))) <= plain
+    if banned.size:
+        ok &= ~banned
+    every = np.where(ok, cost[None, :] + step, np.inf)
+    want = every.min(axis=1)
+    assert np.isfinite(want).sum() > b // 2 and (~np.isfinite(want)).any()  # both kinds of target
+    np.testing.assert_allclose(total, want, rtol=0, atol=1e-9)
+    found = np.isfinite(want)
+    assert np.all(every[found, pick[found]] <= want[found] + 1e-9)
+    assert np.all(pick[~found] == 0)

@@ -179,19 +179,78 @@ class LayeredGraph:
         dst = np.flatnonzero(ok[level])
         if len(src) == 0 or len(dst) == 0:
             return best, back
-        step, admitted = self.steps(level, self.candidates[level - 1][src], self.candidates[level][dst])
-        total = np.where(admitted, cost[src][None, :] + step, np.inf)
-        banned = self._ban_pairs(level)
-        if banned is not None:
-            a, b = banned
+        sources = self.candidates[level - 1][src]
+        turned = sources @ self.turns[level].T if self.turns is not None else sources
+        plain = self.plain[level] if self.plain is not None else -1.0
+        banned = np.zeros((0, 0), dtype=np.bool_)
+        pairs = self._ban_pairs(level)
+        if pairs is not None:
+            a, b = pairs
             i, j = np.searchsorted(dst, b), np.searchsorted(src, a)
             hit = (i < len(dst)) & (j < len(src))
             hit[hit] = (dst[i[hit]] == b[hit]) & (src[j[hit]] == a[hit])
-            total[i[hit], j[hit]] = np.inf
-        pick = np.argmin(total, axis=1)
-        best[dst] = total[np.arange(len(dst)), pick]
+            if hit.any():
+                banned = np.zeros((len(dst), len(src)), dtype=np.bool_)
+                banned[i[hit], j[hit]] = True
+        c = cost[src]
+        total, pick = _dense_min(np.ascontiguousarray(self.candidates[level][dst]), np.ascontiguousarray(turned),
+                                 np.ascontiguousarray(sources), c, np.argsort(c, kind="stable"),
+                                 float(self.limit[level] * (1.0 + 1e-12)), float(plain * (1.0 + 1e-12)), banned)
+        best[dst] = total
         back[dst] = src[pick]
         return best, back
+
+
+def _dense_min(targets, turned, sources, cost, order, limit, plain, banned):
+    """For each target (b, 3): the cheapest cost[j] + step over the sources j (a, 3) whose step is
+    allowed (``LayeredGraph.steps``: turned step <= limit, or plain angle <= plain when plain >= 0;
+    not ``banned`` (b, a), when that is not empty). (total (b,), source index (b,); inf and 0 where
+    none is allowed.) The sources are visited in ``order`` of cost and a target stops at the first
+    costing more than its best so far (a step is never negative), and a pair whose chord alone
+    costs more is skipped, so the angles of most pairs are never computed; ties go to the lowest
+    source index, as an argmin over the sources would."""
+    nb, na = targets.shape[0], turned.shape[0]
+    total = np.full(nb, np.inf)
+    pick = np.zeros(nb, dtype=np.int64)
+    use_ban = banned.shape[0] > 0
+    to_deg = 180.0 / np.pi
+    for i in range(nb):
+        tx, ty, tz = targets[i, 0], targets[i, 1], targets[i, 2]
+        best, arg = np.inf, -1
+        for k in range(na):
+            j = order[k]
+            c = cost[j]
+            if c > best:
+                break
+            if use_ban and banned[i, j]:
+                continue
+            d = min(max(tx * turned[j, 0] + ty * turned[j, 1] + tz * turned[j, 2], -1.0), 1.0)
+            # The chord 2·sin(φ/2) = sqrt(2 - 2d) is never longer than the arc φ (a hair less
+            # here, for rounding): a cheap lower bound that skips most arc-cosines.
+            chord = np.sqrt(max(2.0 - 2.0 * d, 0.0)) * to_deg * (1.0 - 1e-9)
+            if c + chord > best or (chord > limit and plain < 0.0):
+                continue
+            step = np.arccos(d) * to_deg
+            if not step <= limit:
+                if plain < 0.0:
+                    continue
+                e = min(max(tx * sources[j, 0] + ty * sources[j, 1] + tz * sources[j, 2], -1.0), 1.0)
+                if not np.arccos(e) * to_deg <= plain:
+                    continue
+            t = c + step
+            if t < best or (t == best and j < arg):
+                best, arg = t, j
+        if arg >= 0:
+            total[i], pick[i] = best, arg
+    return total, pick
+
+
+try:
+    from numba import njit as _njit
+
+    _dense_min = _njit(cache=True, nogil=True)(_dense_min)
+except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
+    pass
 
 
 def cheapest_path(candidates: np.ndarray, free: np.ndarray, programmed: np.ndarray,

@@ -285,6 +285,7 @@ class GraphStrategy:
     FAIL_SOURCES = 3  # a vertex whose moves fail from this many vertices before it is dropped
     REOPENS = 2  # searches again with the levels given up after a level since freed
     PROOF_PAIRS = 4096  # moves checked at most to show that no move frees a level (``_prove_stuck``)
+    PROOF_BATCH = 32  # moves checked at once there, until one is free
 
     def __init__(self, options):
         self.max_tilt = float(options.max_tilt)
@@ -386,9 +387,7 @@ class GraphStrategy:
             sources = s.graph.candidates[i][starts]  # level i of the graph is episode level i - 1
             _, allowed = s.graph.steps(i + 1, sources, s.cands[i, to])
             b, a = np.nonzero(allowed)
-            if len(a) > self.PROOF_PAIRS:
-                continue
-            if len(a) and not ep.moves_hit_parts(i, start_words[a], s.cands[i, to[b]]).all():
+            if len(a) > self.PROOF_PAIRS or not self._all_hit(s, i, start_words, sources, a, to[b]):
                 continue
             if not len(to):
                 s.stuck[i] = f"no free orientation within {self.max_tilt:g}° (--max-tilt) and the machine's limits"
@@ -404,6 +403,20 @@ class GraphStrategy:
             s.state[i, 1:] = 2
             marked = True
         return marked
+
+    def _all_hit(self, s: "_Search", level: int, start_words: np.ndarray, sources: np.ndarray, a: np.ndarray,
+                 targets: np.ndarray) -> bool:
+        """Whether every move into ``level`` from start_words[a] (orientations sources[a]) to the
+        candidates ``targets`` hits a part: checked PROOF_BATCH at a time, the shortest steps
+        first, up to the first batch with a free move (one is enough to stop; a free move costs
+        the most to check: every sample of its sweep)."""
+        N = s.cands[level, targets]
+        order = np.argsort(-np.einsum("ij,ij->i", N, sources[a]), kind="stable")
+        for lo in range(0, len(order), self.PROOF_BATCH):
+            pick = order[lo:lo + self.PROOF_BATCH]
+            if not s.ep.moves_hit_parts(level, start_words[a[pick]], N[pick]).all():
+                return False
+        return True
 
     def _part_free(self, s: "_Search", level: int) -> np.ndarray:
         """The valid candidates of a level free of the parts and the beads laid before the episode
