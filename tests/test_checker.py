@@ -170,16 +170,19 @@ def test_grouped_sweeps_decide_like_sample_by_sample(checker, meshes):
     assert (alone == grouped).all()
 
 
-def test_a_margin_is_honoured_exactly(checker, meshes):
-    """With a margin (sweeps) a pose is flagged iff the exact distance is below it."""
+@pytest.mark.parametrize("margin_mm", [0.5, 2.0, 6.0])
+def test_a_margin_is_honoured_exactly(checker, meshes, margin_mm):
+    """With a margin (sweeps) a pose is flagged iff the exact distance (the reference: coal's
+    mesh distance) is below it: no miss, and no false alarm (the checker's exact test is coal's
+    collision test with the margin as its security margin)."""
     _, mold = meshes
     C, R = _random_part_poses(mold, 300, seed=3)
-    margin = np.full(len(C), 0.5)
-    flagged = checker.check_parts(C, R, margin)[:, 0]
+    flagged = checker.check_parts(C, R, np.full(len(C), margin_mm))[:, 0]
     values, _ = checker.reference.clearances(C, R)
-    truth = values < 0.5
-    ok = np.abs(values - 0.5) > 1e-6  # the depth of a hit is a lower bound; only the sign is exact
-    assert (flagged[ok] | ~truth[ok]).all()
+    truth = values < margin_mm
+    ok = np.abs(values - margin_mm) > 1e-6  # the depth of a hit is a lower bound; only the sign is exact
+    assert 0 < truth[ok].sum() < ok.sum()
+    assert np.array_equal(flagged[ok], truth[ok])
 
 
 # -- deposit -----------------------------------------------------------------------------------
