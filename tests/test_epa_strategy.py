@@ -298,6 +298,39 @@ def test_the_head_is_tilted_away_from_what_it_printed(made, head):
     print(f"\nepa deposit: {made[-1].last}")
 
 
+def test_blocks_the_walk_leaves_colliding_are_searched_by_the_graph(made, head, tmp_path, monkeypatch):
+    # The walk is greedy: here it is made to find nothing (every tilt search comes back empty),
+    # so it leaves the wall's 8 blocks as programmed; the orientation graph then searches the
+    # episode, frees them all, and its answer is kept. With the fallback off they stay.
+    from ncfix.correct import epa
+
+    def no_tilt(self, C, N0, rotation_of, is_free, *, max_tilt_deg, **kw):
+        return epa.TiltResult(None, max_tilt_deg, 0, ["part:wall.stl"])
+
+    monkeypatch.setattr(epa.EpaModel, "tilt", no_tilt)
+    data, wall = _pass_program()
+    wall.export(tmp_path / "wall.stl")
+    limits = dict(max_tilt=15.0, max_step=3.0)
+    part = (str(tmp_path / "wall.stl"),)
+
+    out, report = _run(data, part=part, bead_radius=0.0, extra={"epa_graph_fallback": False}, **limits)
+    assert report.exit_code == 1 and len(report.unresolved) == 8 and out == data
+    assert made[-1].graph is None and made[-1].last["left_by_epa"] == 8
+
+    out, report = _run(data, part=part, bead_radius=0.0, **limits)
+    strategy = made[-1]
+    assert strategy.last["left_by_epa"] == 8 and strategy.last["by_graph"] is True
+    assert strategy.graph_episodes == strategy.graph_kept == 1
+    assert report.exit_code == 0 and report.summary["unresolved_blocks"] == 0
+    assert {c["line"] for c in report.collisions} <= {c["line"] for c in report.changes}
+    _check(data, out, report, is_free=_part_free(head, wall), **limits)
+
+
+def test_the_graph_fallback_takes_true_or_false():
+    with pytest.raises(ConfigError, match="epa_graph_fallback"):
+        EpaStrategy(replace(Options(), extra={"epa_graph_fallback": "yes"}))
+
+
 def test_the_graph_leaves_the_blocks_programmed_where_max_tilt_is_below_its_coarse_spacing(tmp_path):
     # Θ = 1° holds no point of the graph's coarse grid (4 resolutions apart): its first tests
     # are empty (this crashed), and no orientation within 1° frees the wall's blocks.

@@ -42,6 +42,10 @@ EPA"; ``ncfix.correct.epa`` does the geometry):
    block collide that did not (except after a block left colliding, as ``GraphStrategy``), else
    the program as written. Pinning costs fixes: a level pinned inside a run of tilted levels
    leaves those its ramps cannot reach within θ unresolved too (with reasons).
+4. *The graph where the walk fails.* An episode the walk leaves with blocks colliding is searched
+   again by the orientation graph (``GraphStrategy``, the same episode); its answer is kept when
+   it leaves fewer blocks colliding (then the words, the ramps and the reasons are the graph's).
+   ``epa_graph_fallback = False`` keeps the walk's answer alone (the seed's method).
 
 Approximate by design (as ``ncfix.correct.epa``): the walk is greedy, so a free orientation may be
 missed, and the tilts are small but not the smallest. With ``--pivot point`` the head turns about
@@ -57,6 +61,7 @@ import time
 import numpy as np
 
 from ncfix.correct.epa import VARIANTS, EpaModel
+from ncfix.correct.solve import GraphStrategy
 from ncfix.errors import ConfigError
 from ncfix.geometry.frames import angle_between_deg, rotation_between, rotation_from_z
 
@@ -99,7 +104,8 @@ class EpaStrategy:
     options : ``Options`` (max_tilt Θ, max_step θ, resolution) and, read with getattr or from
         ``options.extra``: ``epa_variant`` ("fixed" | "lami", default "lami"), ``epa_step_deg``
         (the walk's step, default resolution / 2), ``epa_threshold`` (CoACD concavity, 0.05),
-        ``epa_cache_dir`` (decomposition cache, default ``$NCFIX_CACHE`` or ~/.cache/ncfix/coacd)
+        ``epa_cache_dir`` (decomposition cache, default ``$NCFIX_CACHE`` or ~/.cache/ncfix/coacd),
+        ``epa_graph_fallback`` (True: the graph searches the episodes the walk leaves colliding)
     The hull model is built on the first ``solve`` (parts and head of the episode's checker) and
     kept: ``decompose_seconds``, ``cached`` and ``pieces_count`` describe it; ``episodes``,
     ``solve_seconds`` and ``last`` (stats of the last episode) are for benchmarks.
@@ -120,6 +126,13 @@ class EpaStrategy:
         self.bump_deg = 2.0 * self.step_deg
         self.threshold = float(_option(options, "epa_threshold", 0.05))
         self.cache_dir = _option(options, "epa_cache_dir", None)
+        fallback = _option(options, "epa_graph_fallback", True)
+        if not isinstance(fallback, bool):
+            raise ConfigError(f"epa_graph_fallback has a bad value {fallback!r}", fix="use true or false")
+        # The orientation graph for the episodes the walk leaves colliding (None: the walk alone).
+        self.graph = GraphStrategy(options) if fallback else None
+        self.graph_episodes = 0  # episodes the graph searched after the walk
+        self.graph_kept = 0  # of those, the episodes whose answer is the graph's
         self.model: EpaModel | None = None
         self._model_of: int | None = None  # id of the checker the model was built from
         self.decompose_seconds = 0.0
@@ -149,13 +162,23 @@ class EpaStrategy:
         started = time.perf_counter()
         solver = _EpisodeSolver(self, self.model_for(ep.checker), ep)
         solution = solver.run()
+        left_by_epa = len(solution.unresolved)
+        by_graph = False
+        if solution.unresolved and self.graph is not None:
+            # The walk is greedy: where it leaves blocks colliding, the orientation graph searches
+            # the episode (its answer is the graph strategy's) and is kept when it leaves fewer.
+            graph = self.graph.solve(ep)
+            if len(graph.unresolved) < len(solution.unresolved):
+                solution, by_graph = graph, True
+            self.graph_episodes += 1
+            self.graph_kept += by_graph
         seconds = time.perf_counter() - started
         self.episodes += 1
         self.solve_seconds += seconds
         self.last = {"levels": len(ep.rows), "colliding": int(np.count_nonzero(ep.is_colliding)),
-                     "unresolved": len(solution.unresolved), "rounds": solver.rounds,
-                     "searches": solver.searches, "tests": int(getattr(ep, "tests", 0)), **solver.settles,
-                     "seconds": round(seconds, 4)}
+                     "unresolved": len(solution.unresolved), "left_by_epa": left_by_epa, "by_graph": by_graph,
+                     "rounds": solver.rounds, "searches": solver.searches, "tests": int(getattr(ep, "tests", 0)),
+                     **solver.settles, "seconds": round(seconds, 4)}
         return solution
 
 
