@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 from ncfix.correct.candidates import SphereGrid, level_candidates
-from ncfix.correct.graph import LayeredGraph, _dense_min, cheapest_path
+from ncfix.correct.graph import LIMIT_SLACK, LayeredGraph, _dense_min, cheapest_path
 from ncfix.geometry.frames import angle_between_deg, rotation_from_z
 
 
@@ -304,10 +306,10 @@ def test_the_dense_levels_pick_what_every_pair_says(seed):
     banned = rng.random((b, a)) < 0.2 if seed >= 2 else np.zeros((0, 0), dtype=bool)
     total, pick = _dense_min(targets, turned, sources, cost, np.argsort(cost, kind="stable"), limit, plain, banned)
 
-    step = np.degrees(np.arccos(np.clip(targets @ turned.T, -1.0, 1.0)))
-    ok = step <= limit
-    if plain >= 0:
-        ok |= np.degrees(np.arccos(np.clip(targets @ sources.T, -1.0, 1.0))) <= plain
+    # Every pair's step and whether it is allowed, as the graph's one rule says (LayeredGraph.steps).
+    rule = SimpleNamespace(turns=np.stack([np.eye(3), turn]), limit=np.array([0.0, limit / LIMIT_SLACK]),
+                           plain=np.array([-1.0, plain / LIMIT_SLACK]) if plain >= 0 else None)
+    step, ok = LayeredGraph.steps(rule, 1, sources, targets)
     if banned.size:
         ok &= ~banned
     every = np.where(ok, cost[None, :] + step, np.inf)

@@ -26,6 +26,9 @@ DEVIATION_WEIGHT = 0.2
 NEIGHBOURS = 48
 # Levels whose step limit is wider than this (degrees) take every allowed source (``cheapest``).
 DENSE_ABOVE_DEG = 6.0
+# A step is allowed up to its limit times this (float noise never refuses a step at the limit);
+# ``LayeredGraph.steps`` and the compiled dense step (``_dense_min``) both apply it.
+LIMIT_SLACK = 1.0 + 1e-12
 
 
 class LayeredGraph:
@@ -51,7 +54,7 @@ class LayeredGraph:
         levels, k = valid.shape
         self.valid = valid.copy()
         limit = np.broadcast_to(np.asarray(max_step_deg, dtype=np.float64), (levels,))
-        chords = 2.0 * np.sin(np.radians(np.minimum(limit, 180.0)) / 2.0) * (1.0 + 1e-12)
+        chords = 2.0 * np.sin(np.radians(np.minimum(limit, 180.0)) / 2.0) * LIMIT_SLACK
         self.deviation = np.degrees(np.arccos(np.clip(
             np.einsum("lkj,lj->lk", self.candidates, programmed), -1.0, 1.0)))
         self.deviation_weight = float(deviation_weight)
@@ -152,13 +155,15 @@ class LayeredGraph:
 
     def steps(self, level: int, sources: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The steps from orientations ``sources`` (a, 3) at level - 1 to ``targets`` (b, 3) at
-        ``level``: their weights (b, a) in degrees (the turned step) and whether each is allowed."""
+        ``level``: their weights (b, a) in degrees (the turned step) and whether each is allowed.
+        The rule is this; the dense search's compiled loop (``_dense_min``) applies the same one
+        pair by pair, and tests/test_graph.py holds the two together."""
         turned = sources @ self.turns[level].T if self.turns is not None else sources
         step = np.degrees(np.arccos(np.clip(targets @ turned.T, -1.0, 1.0)))
-        allowed = step <= self.limit[level] * (1.0 + 1e-12)
+        allowed = step <= self.limit[level] * LIMIT_SLACK
         if self.plain is not None and self.plain[level] >= 0.0:
             plain = np.degrees(np.arccos(np.clip(targets @ sources.T, -1.0, 1.0)))
-            allowed |= plain <= self.plain[level] * (1.0 + 1e-12)
+            allowed |= plain <= self.plain[level] * LIMIT_SLACK
         return step, allowed
 
     def _ban_pairs(self, level: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -195,7 +200,7 @@ class LayeredGraph:
         c = cost[src]
         total, pick = _dense_min(np.ascontiguousarray(self.candidates[level][dst]), np.ascontiguousarray(turned),
                                  np.ascontiguousarray(sources), c, np.argsort(c, kind="stable"),
-                                 float(self.limit[level] * (1.0 + 1e-12)), float(plain * (1.0 + 1e-12)), banned)
+                                 float(self.limit[level] * LIMIT_SLACK), float(plain * LIMIT_SLACK), banned)
         best[dst] = total
         back[dst] = src[pick]
         return best, back
