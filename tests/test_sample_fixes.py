@@ -10,6 +10,8 @@
   every block's end pose, and at the sweep samples (pitch spacing) of the moves the fix changed
   (at most SWEEP_MOVES of them, evenly spread, on the 5,000-point programs): a block colliding in
   the output is one the report lists as unresolved;
+- local: every changed block lies within a ramp (⌈Θ/θ⌉ + 1 blocks) and one block of a block the
+  check of the input flags (the report's ``collisions``): blocks far from any collision untouched;
 - idempotent: a clean output has nothing for ncfix to find (``--check`` on it: no collision), so a
   second run changes nothing; an output with unresolved blocks is run again and must come back
   byte for byte (``NOT_IDEMPOTENT`` would list known exceptions, checked to still fail: xfail);
@@ -178,6 +180,16 @@ def test_sample_fix(name, machine, mold, strategy):
     own = angle_between_deg(p0.N[1:], p0.N[:-1])
     step = angle_between_deg(p1.N[1:], p1.N[:-1])
     assert (step[own <= THETA] <= THETA + 0.01).all()
+
+    # Local: a change is part of an episode (its colliding blocks and ramps) or a word it alters on
+    # the block after.
+    ramp = int(np.ceil(BIG_THETA / THETA)) + 1
+    row_of = {int(line): i for i, line in enumerate(p0.lines)}
+    flagged = np.array(sorted(row_of[c["line"]] for c in report.collisions if c["line"] in row_of), dtype=int)
+    far = [line for line in changed if line in row_of and not (len(flagged) and
+                                                               np.abs(flagged - row_of[line]).min() <= ramp + 1)]
+    assert not far, f"lines {far} changed, more than {ramp + 1} blocks from any flagged block"
+    assert all(line in row_of for line in changed), "only motion blocks change"
 
     # The exact reference on the output: end poses everywhere, sweeps of the changed moves.
     head = load_head(SAMPLES / "deposition_head.stl").mesh
