@@ -319,3 +319,44 @@ def test_the_dense_levels_pick_what_every_pair_says(seed):
     found = np.isfinite(want)
     assert np.all(every[found, pick[found]] <= want[found] + 1e-9)
     assert np.all(pick[~found] == 0)
+
+
+class _ShadowEpisode(_ToyEpisode):
+    """Θ = 3° (every candidate is within the ban's neighbourhood of every other). Level 3 collides
+    as programmed and is free tilted, but a tilted level 3 lays what the head at level 4 hits:
+    level 4 is free only as programmed, and only after a programmed level 3. Levels 6 and 7
+    collide as programmed and are free tilted, whatever happens at levels 3-4."""
+
+    def __init__(self):
+        super().__init__(levels=10)
+        self.colliding = np.array([3, 6, 7])
+        self.is_colliding = np.isin(self.rows, self.colliding)
+
+    def pose_free(self, level, N) -> np.ndarray:
+        level, N = np.asarray(level), N / np.linalg.norm(N, axis=1, keepdims=True)
+        tilted = np.degrees(np.arccos(np.clip(N[:, 2], -1.0, 1.0))) > 0.5
+        return np.where(np.isin(level, [3, 6, 7]), tilted, np.where(level == 4, ~tilted, True))
+
+    def recheck(self, words) -> np.ndarray:
+        bad = super().recheck(words)
+        tilt3 = np.degrees(np.arccos(np.clip(words[3, 2] / np.linalg.norm(words[3]), -1.0, 1.0)))
+        bad[4] |= tilt3 > 0.5
+        return bad
+
+
+def test_a_failed_move_near_the_programmed_orientations_keeps_the_programmed_path():
+    """The move into level 4 fails after every tilt of level 3, and the ban of a failed move takes
+    the edges between the two neighbourhoods, which here hold every vertex: the programmed edge
+    into level 4 must stay (before, it went too, no path was left, and the whole episode was left
+    as programmed: levels 6 and 7 as well, which are free tilted)."""
+    from types import SimpleNamespace
+
+    from ncfix.correct.solve import GraphStrategy
+
+    ep = _ShadowEpisode()
+    solution = GraphStrategy(SimpleNamespace(max_tilt=3.0, max_step=30.0, resolution=2.0)).solve(ep)
+    assert solution.unresolved == [3, 4]
+    assert solution.reasons[4] == "its move starts at the block before, which is left colliding"
+    assert np.array_equal(solution.words[3:5], ep.programmed[3:5])
+    assert (angle_between_deg(solution.words[6:8], ep.N0[6:8]) > 0.5).all()
+    assert not ep.recheck(solution.words)[6:].any()

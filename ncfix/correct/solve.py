@@ -249,6 +249,9 @@ class _Search:
     proved: set[int] = field(default_factory=set)
     stuck: dict[int, str] = field(default_factory=dict)
     part_free: dict[int, np.ndarray] = field(default_factory=dict)  # ``GraphStrategy._part_free``
+    # Levels free as programmed whose programmed move (from the programmed level before) failed a
+    # re-check: kept as programmed they count as colliding, at a cost (``GraphStrategy._ban``).
+    programmed_failed: set[int] = field(default_factory=set)
 
 
 class GraphStrategy:
@@ -326,7 +329,10 @@ class GraphStrategy:
             if self._prove_stuck(s, left):
                 continue
             words = ep.words_of(cands[rows_l, pick], pick == 0)
-            bad = ep.recheck(words) & ~left
+            bad = ep.recheck(words)
+            if s.programmed_failed:  # left colliding only where this path's re-check says so
+                left &= bad | ~np.isin(rows_l, list(s.programmed_failed))
+            bad &= ~left
             # A move that starts at a pose left colliding collides whatever its end.
             after_left = bad & np.concatenate([[False], left[:-1]])
             tilted = after_left & (pick != 0)
@@ -447,15 +453,32 @@ class GraphStrategy:
         it goes too (its own beads, not the way in)."""
         L = len(pick)
         for i in np.nonzero(bad)[0].tolist():
+            # The programmed edges (vertex 0 to vertex 0) stay: with them the programmed path is
+            # always a path, and the search can leave blocks colliding rather than find none (a
+            # neighbourhood's ban took them when the picks were near the programmed orientations,
+            # and the whole episode was left as programmed). Where the programmed move itself
+            # failed, the level kept as programmed counts as colliding, at a cost.
+            if pick[i] == 0 and (i == 0 or pick[i - 1] == 0):
+                s.programmed_failed.add(i)
+                s.state[i, 0] = 2
+                continue
             targets = self._near(s.cands, s.valid, i, pick[i])
             sources = self._near(s.cands, s.valid, i - 1, pick[i - 1]) if i > 0 else np.array([0])
-            s.graph.ban(i + 1, sources, targets)
+            self._ban_but_programmed(s.graph, i + 1, sources, targets)
             if i == L - 1:  # or the move out of it, into the row after
-                s.graph.ban(L + 1, targets, np.array([0]))
+                self._ban_but_programmed(s.graph, L + 1, targets, np.array([0]))
             failed = s.fails.setdefault((i, int(pick[i])), set())
             failed.add(int(pick[i - 1]) if i > 0 else -1)
             if len(failed) >= self.FAIL_SOURCES and not (pick[i] == 0 and s.state[i, 0] == 1):
                 s.state[i, pick[i]] = 2
+
+    @staticmethod
+    def _ban_but_programmed(graph: LayeredGraph, level: int, sources: np.ndarray, targets: np.ndarray) -> None:
+        """``graph.ban`` of every edge from ``sources`` to ``targets`` except vertex 0 to vertex 0."""
+        sources, targets = np.asarray(sources), np.asarray(targets)
+        graph.ban(level, sources[sources != 0], targets)
+        if (sources == 0).any():
+            graph.ban(level, np.array([0]), targets[targets != 0])
 
     def _reopen(self, s: "_Search", left: np.ndarray) -> bool:
         """Levels given up after a level that this path frees are searched again, with the run
@@ -484,6 +507,10 @@ class GraphStrategy:
                 continue
             if i > 0 and left[i - 1] and (i in s.given_up or s.state[i, 0] == 1):
                 reasons[row] = "its move starts at the block before, which is left colliding"
+                continue
+            if i in s.programmed_failed and not s.ep.is_colliding[i]:
+                reasons[row] = ("free as programmed, but it collides once the blocks before it are changed (their "
+                                "poses or beads), and no path within the limits frees it with them")
                 continue
             free_any = (s.valid[i] & (s.state[i] == 1)).any()
             untested = (s.valid[i] & (s.state[i] == 0)).any()
