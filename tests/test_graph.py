@@ -182,6 +182,7 @@ def test_a_search_cut_off_by_its_round_limit_says_so(monkeypatch):
     solution = GraphStrategy(SimpleNamespace(max_tilt=30.0, max_step=30.0, resolution=2.0)).solve(_ToyEpisode())
     assert 3 in solution.unresolved
     assert "4-round limit" in solution.reasons[3]
+    assert "failed it most often" not in solution.reasons[3]  # its rounds went to candidate tests
 
 
 class _BlockedEpisode(_ToyEpisode):
@@ -360,3 +361,16 @@ def test_a_failed_move_near_the_programmed_orientations_keeps_the_programmed_pat
     assert np.array_equal(solution.words[3:5], ep.programmed[3:5])
     assert (angle_between_deg(solution.words[6:8], ep.N0[6:8]) > 0.5).all()
     assert not ep.recheck(solution.words)[6:].any()
+
+
+def test_a_search_cut_off_by_its_round_limit_names_the_moves_that_failed_its_rechecks(monkeypatch):
+    """Cut off after a few rounds, the shadow episode's reason says where the search was stuck:
+    the move into level 4 (line 5 here: the toy's line is its row + 1) failed its re-checks."""
+    from types import SimpleNamespace
+
+    from ncfix.correct.solve import GraphStrategy
+
+    monkeypatch.setattr(GraphStrategy, "MAX_ROUNDS", 4)
+    solution = GraphStrategy(SimpleNamespace(max_tilt=3.0, max_step=30.0, resolution=2.0)).solve(_ShadowEpisode())
+    assert solution.reasons[3].startswith("the search stopped at its 4-round limit"), solution.reasons[3]
+    assert solution.reasons[3].endswith("; the moves into lines 5 (2x) failed it most often"), solution.reasons[3]

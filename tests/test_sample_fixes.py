@@ -45,6 +45,15 @@ SWEEP_MOVES = 150  # changed moves whose sweeps the exact reference samples, at 
 # Known exceptions: (sample, strategy) -> why a second run on its output changes it. None now (the
 # graph on bathtub_273_table_ac was one until its search gave up a held run in one round).
 NOT_IDEMPOTENT: dict[tuple[str, str], str] = {}
+# Known exceptions to "no block is left by the graph's round limit": (sample, strategy) -> why,
+# checked to still hold (a search that settles there must come off the list).
+ROUND_LIMITED: dict[tuple[str, str], str] = {
+    ("bathtub_5000_table_ac.nc", "graph"): (
+        "the floor passes (A0, C fixed) need a tilt along the pass, which on the A/C table is C turned "
+        "by about 90°: every path found frees the middle of the episode, but the ramp moves into and "
+        "out of it turn C by 80-90° in one block and sweep the feeder box through the beads; the "
+        "search tries ramps a neighbourhood at a time until its round limit (README, Samples)"),
+}
 
 CASES = [
     ("bathtub_273.nc", "ijk", True),
@@ -166,7 +175,8 @@ def test_sample_fix(name, machine, mold, strategy):
     # The graph's search settles: no block is left because it ran out of rounds (its reasons are
     # what the candidates and moves showed).
     if strategy == "graph":
-        assert not [u["line"] for u in report.unresolved if "round limit" in u["reason"]]
+        limited = [u["line"] for u in report.unresolved if "round limit" in u["reason"]]
+        assert bool(limited) == ((name, strategy) in ROUND_LIMITED), limited[:10]
 
     # Within the limits, the tip where it was.
     profile = load_profile(machine)

@@ -252,6 +252,7 @@ class _Search:
     # Levels free as programmed whose programmed move (from the programmed level before) failed a
     # re-check: kept as programmed they count as colliding, at a cost (``GraphStrategy._ban``).
     programmed_failed: set[int] = field(default_factory=set)
+    failed_rechecks: dict[int, int] = field(default_factory=dict)  # level -> re-checks its move failed
 
 
 class GraphStrategy:
@@ -357,7 +358,7 @@ class GraphStrategy:
             capped = True
         if best is None:
             rows = [int(r) for r in ep.colliding]
-            why = self._limit(L) if capped else (f"no path keeps every step within {self.max_step:g}° (--max-step) "
+            why = self._limit(s) if capped else (f"no path keeps every step within {self.max_step:g}° (--max-step) "
                                                  f"and the tilt within {self.max_tilt:g}°")
             return Solution(ep.programmed.copy(), rows, {r: why for r in rows})
         words, left = best
@@ -453,6 +454,7 @@ class GraphStrategy:
         it goes too (its own beads, not the way in)."""
         L = len(pick)
         for i in np.nonzero(bad)[0].tolist():
+            s.failed_rechecks[i] = s.failed_rechecks.get(i, 0) + 1
             # The programmed edges (vertex 0 to vertex 0) stay: with them the programmed path is
             # always a path, and the search can leave blocks colliding rather than find none (a
             # neighbourhood's ban took them when the picks were near the programmed orientations,
@@ -493,9 +495,18 @@ class GraphStrategy:
                 i += 1
         return True
 
-    def _limit(self, L: int) -> str:
-        return (f"the search stopped at its {self.MAX_ROUNDS}-round limit (an episode of {L} blocks) before "
-                "a path freeing it passed the re-check")
+    def _limit(self, s: "_Search") -> str:
+        """Why a level is left when the rounds ran out: the limit, and the lines whose moves failed
+        the re-checks most often (where the search was stuck)."""
+        why = (f"the search stopped at its {self.MAX_ROUNDS}-round limit (an episode of {len(s.ep.rows)} blocks) "
+               "before a path freeing it passed the re-check")
+        if s.failed_rechecks:
+            top = sorted(s.failed_rechecks.items(), key=lambda kv: (-kv[1], kv[0]))[:4]
+            rows = getattr(s.ep.stage, "rows", None)  # the stage's rows: their input lines
+            lines = ", ".join(f"{int(rows.line[s.ep.rows[i]]) if rows is not None else int(s.ep.rows[i]) + 1}"
+                              f" ({n}x)" for i, n in sorted(top))
+            why += f"; the moves into lines {lines} failed it most often"
+        return why
 
     def _reasons(self, s: "_Search", left: np.ndarray, capped: bool) -> dict[int, str]:
         """Why each level left colliding is: by what its candidates' states say."""
@@ -517,7 +528,7 @@ class GraphStrategy:
             if not free_any and not untested:
                 why = f"no free orientation within {self.max_tilt:g}° (--max-tilt) and the machine's limits"
             elif capped:
-                why = self._limit(len(left))
+                why = self._limit(s)
             elif free_any:
                 why = (f"a free orientation exists, but no path to it keeps every step within {self.max_step:g}° "
                        f"(--max-step) while the blocks around it stay free")
