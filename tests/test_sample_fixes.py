@@ -16,7 +16,7 @@
   second run changes nothing; an output with unresolved blocks is run again and must come back
   byte for byte (``NOT_IDEMPOTENT`` would list known exceptions, checked to still fail: xfail);
 - the report's exit status follows its unresolved blocks; with the graph, none is left by the
-  search's round limit.
+  search's round limit (``ROUND_LIMITED`` lists the known exceptions, checked to still be ones).
 
 The 5,000-point programs are marked ``long`` (about 5-15 minutes each): ``pytest -m long``.
 The settings are the bundled ``samples/ncfix.toml`` (head, mold, M3/M5 deposit, θ = 30°); the
