@@ -374,3 +374,42 @@ def test_a_search_cut_off_by_its_round_limit_names_the_moves_that_failed_its_rec
     solution = GraphStrategy(SimpleNamespace(max_tilt=3.0, max_step=30.0, resolution=2.0)).solve(_ShadowEpisode())
     assert solution.reasons[3].startswith("the search stopped at its 4-round limit"), solution.reasons[3]
     assert solution.reasons[3].endswith("; the moves into lines 5 (2x) failed it most often"), solution.reasons[3]
+
+
+
+class _ShadowedProgrammedEpisode(_ToyEpisode):
+    """Level 2 collides as programmed and is free tilted; levels 3 and 4 are free only as
+    programmed, and level 4 collides once level 2 is tilted (what the tilted level 2 lays is in
+    its way): the programmed move into it fails, from a programmed level 3."""
+
+    def __init__(self):
+        super().__init__(levels=10)
+        self.colliding = np.array([2])
+        self.is_colliding = np.isin(self.rows, self.colliding)
+
+    def pose_free(self, level, N) -> np.ndarray:
+        level, N = np.asarray(level), N / np.linalg.norm(N, axis=1, keepdims=True)
+        tilted = np.degrees(np.arccos(np.clip(N[:, 2], -1.0, 1.0))) > 0.5
+        return np.where(level == 2, tilted, np.where(np.isin(level, [3, 4]), ~tilted, True))
+
+    def recheck(self, words) -> np.ndarray:
+        bad = super().recheck(words)
+        bad[4] |= np.degrees(np.arccos(np.clip(words[2, 2] / np.linalg.norm(words[2]), -1.0, 1.0))) > 0.5
+        return bad
+
+
+def test_a_fix_that_makes_a_free_block_collide_is_no_answer_and_the_reason_says_so():
+    """Freeing level 2 makes level 4 collide, as programmed and free in the input: the programmed
+    move's failure bans it, no path is left, and the episode stays as programmed with a reason
+    that names the failing move (not a claim about the step limit)."""
+    from types import SimpleNamespace
+
+    from ncfix.correct.solve import GraphStrategy
+
+    ep = _ShadowedProgrammedEpisode()
+    solution = GraphStrategy(SimpleNamespace(max_tilt=30.0, max_step=30.0, resolution=2.0)).solve(ep)
+    assert solution.unresolved == [2]
+    assert np.array_equal(solution.words, ep.programmed)
+    assert solution.reasons[2].startswith("every path within the limits that frees it makes a block collide"), \
+        solution.reasons[2]
+    assert "lines 5 (" in solution.reasons[2], solution.reasons[2]

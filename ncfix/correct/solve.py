@@ -12,6 +12,7 @@ P′ = C − h·N′; ``point`` keeps P (the tip moves to P + h·N′).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
@@ -249,9 +250,6 @@ class _Search:
     proved: set[int] = field(default_factory=set)
     stuck: dict[int, str] = field(default_factory=dict)
     part_free: dict[int, np.ndarray] = field(default_factory=dict)  # ``GraphStrategy._part_free``
-    # Levels free as programmed whose programmed move (from the programmed level before) failed a
-    # re-check: kept as programmed they count as colliding, at a cost (``GraphStrategy._ban``).
-    programmed_failed: set[int] = field(default_factory=set)
     failed_rechecks: dict[int, int] = field(default_factory=dict)  # level -> re-checks its move failed
 
 
@@ -330,10 +328,7 @@ class GraphStrategy:
             if self._prove_stuck(s, left):
                 continue
             words = ep.words_of(cands[rows_l, pick], pick == 0)
-            bad = ep.recheck(words)
-            if s.programmed_failed:  # left colliding only where this path's re-check says so
-                left &= bad | ~np.isin(rows_l, list(s.programmed_failed))
-            bad &= ~left
+            bad = ep.recheck(words) & ~left
             # A move that starts at a pose left colliding collides whatever its end.
             after_left = bad & np.concatenate([[False], left[:-1]])
             tilted = after_left & (pick != 0)
@@ -358,8 +353,14 @@ class GraphStrategy:
             capped = True
         if best is None:
             rows = [int(r) for r in ep.colliding]
-            why = self._limit(s) if capped else (f"no path keeps every step within {self.max_step:g}° (--max-step) "
-                                                 f"and the tilt within {self.max_tilt:g}°")
+            if capped:
+                why = self._limit(s)
+            elif s.failed_rechecks:  # the re-checks' bans took the last path
+                why = ("every path within the limits that frees it makes a block collide that does not as programmed "
+                       f"(the re-checks failed most often at the moves into lines {self._failed_lines(s)})")
+            else:
+                why = (f"no path keeps every step within {self.max_step:g}° (--max-step) "
+                       f"and the tilt within {self.max_tilt:g}°")
             return Solution(ep.programmed.copy(), rows, {r: why for r in rows})
         words, left = best
         words = blend_episode(ep, words, left)
@@ -455,20 +456,18 @@ class GraphStrategy:
         L = len(pick)
         for i in np.nonzero(bad)[0].tolist():
             s.failed_rechecks[i] = s.failed_rechecks.get(i, 0) + 1
-            # The programmed edges (vertex 0 to vertex 0) stay: with them the programmed path is
-            # always a path, and the search can leave blocks colliding rather than find none (a
-            # neighbourhood's ban took them when the picks were near the programmed orientations,
-            # and the whole episode was left as programmed). Where the programmed move itself
-            # failed, the level kept as programmed counts as colliding, at a cost.
-            if pick[i] == 0 and (i == 0 or pick[i - 1] == 0):
-                s.programmed_failed.add(i)
-                s.state[i, 0] = 2
-                continue
             targets = self._near(s.cands, s.valid, i, pick[i])
             sources = self._near(s.cands, s.valid, i - 1, pick[i - 1]) if i > 0 else np.array([0])
-            self._ban_but_programmed(s.graph, i + 1, sources, targets)
+            # A tilted move's ban spares the programmed edge (vertex 0 to vertex 0) between the
+            # neighbourhoods: it is the way to leave the blocks as programmed (before, the ban of
+            # a move near the programmed orientations took it too, no path was left, and the whole
+            # episode went back as programmed). Only the programmed move's own failure bans it
+            # (the blocks changed before it make it collide: leaving it so is no answer).
+            programmed_move = pick[i] == 0 and (i == 0 or pick[i - 1] == 0)
+            ban = s.graph.ban if programmed_move else partial(self._ban_but_programmed, s.graph)
+            ban(i + 1, sources, targets)
             if i == L - 1:  # or the move out of it, into the row after
-                self._ban_but_programmed(s.graph, L + 1, targets, np.array([0]))
+                ban(L + 1, targets, np.array([0]))
             failed = s.fails.setdefault((i, int(pick[i])), set())
             failed.add(int(pick[i - 1]) if i > 0 else -1)
             if len(failed) >= self.FAIL_SOURCES and not (pick[i] == 0 and s.state[i, 0] == 1):
@@ -501,12 +500,16 @@ class GraphStrategy:
         why = (f"the search stopped at its {self.MAX_ROUNDS}-round limit (an episode of {len(s.ep.rows)} blocks) "
                "before a path freeing it passed the re-check")
         if s.failed_rechecks:
-            top = sorted(s.failed_rechecks.items(), key=lambda kv: (-kv[1], kv[0]))[:4]
-            rows = getattr(s.ep.stage, "rows", None)  # the stage's rows: their input lines
-            lines = ", ".join(f"{int(rows.line[s.ep.rows[i]]) if rows is not None else int(s.ep.rows[i]) + 1}"
-                              f" ({n}x)" for i, n in sorted(top))
-            why += f"; the moves into lines {lines} failed it most often"
+            why += f"; the moves into lines {self._failed_lines(s)} failed it most often"
         return why
+
+    @staticmethod
+    def _failed_lines(s: "_Search") -> str:
+        """The (up to 4) input lines whose moves failed the re-checks most often, with the count."""
+        top = sorted(s.failed_rechecks.items(), key=lambda kv: (-kv[1], kv[0]))[:4]
+        rows = getattr(s.ep.stage, "rows", None)  # the stage's rows: their input lines
+        return ", ".join(f"{int(rows.line[s.ep.rows[i]]) if rows is not None else int(s.ep.rows[i]) + 1}"
+                         f" ({n}x)" for i, n in sorted(top))
 
     def _reasons(self, s: "_Search", left: np.ndarray, capped: bool) -> dict[int, str]:
         """Why each level left colliding is: by what its candidates' states say."""
@@ -518,10 +521,6 @@ class GraphStrategy:
                 continue
             if i > 0 and left[i - 1] and (i in s.given_up or s.state[i, 0] == 1):
                 reasons[row] = "its move starts at the block before, which is left colliding"
-                continue
-            if i in s.programmed_failed and not s.ep.is_colliding[i]:
-                reasons[row] = ("free as programmed, but it collides once the blocks before it are changed (their "
-                                "poses or beads), and no path within the limits frees it with them")
                 continue
             free_any = (s.valid[i] & (s.state[i] == 1)).any()
             untested = (s.valid[i] & (s.state[i] == 0)).any()
