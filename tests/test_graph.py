@@ -112,6 +112,7 @@ class _ToyEpisode:
         from types import SimpleNamespace
 
         self.rows = np.arange(levels)
+        self.lines = self.rows + 1
         self.N0 = np.tile([0.0, 0.0, 1.0], (levels, 1))
         self.programmed = self.N0.copy()
         self.colliding = np.array([3, 4])
@@ -365,7 +366,7 @@ def test_a_failed_move_near_the_programmed_orientations_keeps_the_programmed_pat
 
 def test_a_search_cut_off_by_its_round_limit_names_the_moves_that_failed_its_rechecks(monkeypatch):
     """Cut off after a few rounds, the shadow episode's reason says where the search was stuck:
-    the move into level 4 (line 5 here: the toy's line is its row + 1) failed its re-checks."""
+    the move into level 4 (line 5 here: the toy's lines are its rows + 1) failed its re-checks."""
     from types import SimpleNamespace
 
     from ncfix.correct.solve import GraphStrategy
@@ -374,7 +375,6 @@ def test_a_search_cut_off_by_its_round_limit_names_the_moves_that_failed_its_rec
     solution = GraphStrategy(SimpleNamespace(max_tilt=3.0, max_step=30.0, resolution=2.0)).solve(_ShadowEpisode())
     assert solution.reasons[3].startswith("the search stopped at its 4-round limit"), solution.reasons[3]
     assert solution.reasons[3].endswith("; the moves into lines 5 (2x) failed it most often"), solution.reasons[3]
-
 
 
 class _ShadowedProgrammedEpisode(_ToyEpisode):

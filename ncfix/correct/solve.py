@@ -12,7 +12,6 @@ P′ = C − h·N′; ``point`` keeps P (the tip moves to P + h·N′).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import partial
 
 import numpy as np
 
@@ -49,6 +48,7 @@ class Episode:
         self.is_vector = stage.profile.is_vector
         self.first, self.last = first, last
         self.rows = np.arange(first, last + 1)
+        self.lines = r.line[self.rows]  # 1-based input line of each level
         self.colliding = np.asarray(colliding, dtype=np.int64)
         self.is_colliding = np.isin(self.rows, self.colliding)
         self.programmed = r.programmed[first:last + 1]
@@ -463,23 +463,25 @@ class GraphStrategy:
             # a move near the programmed orientations took it too, no path was left, and the whole
             # episode went back as programmed). Only the programmed move's own failure bans it
             # (the blocks changed before it make it collide: leaving it so is no answer).
-            programmed_move = pick[i] == 0 and (i == 0 or pick[i - 1] == 0)
-            ban = s.graph.ban if programmed_move else partial(self._ban_but_programmed, s.graph)
-            ban(i + 1, sources, targets)
+            spare = not (pick[i] == 0 and (i == 0 or pick[i - 1] == 0))
+            self._ban_edges(s.graph, i + 1, sources, targets, spare)
             if i == L - 1:  # or the move out of it, into the row after
-                ban(L + 1, targets, np.array([0]))
+                self._ban_edges(s.graph, L + 1, targets, np.array([0]), spare)
             failed = s.fails.setdefault((i, int(pick[i])), set())
             failed.add(int(pick[i - 1]) if i > 0 else -1)
             if len(failed) >= self.FAIL_SOURCES and not (pick[i] == 0 and s.state[i, 0] == 1):
                 s.state[i, pick[i]] = 2
 
     @staticmethod
-    def _ban_but_programmed(graph: LayeredGraph, level: int, sources: np.ndarray, targets: np.ndarray) -> None:
-        """``graph.ban`` of every edge from ``sources`` to ``targets`` except vertex 0 to vertex 0."""
+    def _ban_edges(graph: LayeredGraph, level: int, sources: np.ndarray, targets: np.ndarray, spare: bool) -> None:
+        """``graph.ban`` of every edge from ``sources`` to ``targets``; with ``spare``, all but the
+        programmed edge (vertex 0 to vertex 0)."""
         sources, targets = np.asarray(sources), np.asarray(targets)
+        if not spare or not ((sources == 0).any() and (targets == 0).any()):
+            graph.ban(level, sources, targets)
+            return
         graph.ban(level, sources[sources != 0], targets)
-        if (sources == 0).any():
-            graph.ban(level, np.array([0]), targets[targets != 0])
+        graph.ban(level, np.array([0]), targets[targets != 0])
 
     def _reopen(self, s: "_Search", left: np.ndarray) -> bool:
         """Levels given up after a level that this path frees are searched again, with the run
@@ -507,9 +509,7 @@ class GraphStrategy:
     def _failed_lines(s: "_Search") -> str:
         """The (up to 4) input lines whose moves failed the re-checks most often, with the count."""
         top = sorted(s.failed_rechecks.items(), key=lambda kv: (-kv[1], kv[0]))[:4]
-        rows = getattr(s.ep.stage, "rows", None)  # the stage's rows: their input lines
-        return ", ".join(f"{int(rows.line[s.ep.rows[i]]) if rows is not None else int(s.ep.rows[i]) + 1}"
-                         f" ({n}x)" for i, n in sorted(top))
+        return ", ".join(f"{int(s.ep.lines[i])} ({n}x)" for i, n in sorted(top))
 
     def _reasons(self, s: "_Search", left: np.ndarray, capped: bool) -> dict[int, str]:
         """Why each level left colliding is: by what its candidates' states say."""
