@@ -413,3 +413,37 @@ def test_a_fix_that_makes_a_free_block_collide_is_no_answer_and_the_reason_says_
     assert solution.reasons[2].startswith("every path within the limits that frees it makes a block collide"), \
         solution.reasons[2]
     assert "lines 5 (" in solution.reasons[2], solution.reasons[2]
+
+
+def _tilt(deg: float, azimuth_deg: float) -> np.ndarray:
+    t, a = np.radians(deg), np.radians(azimuth_deg)
+    return np.array([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)])
+
+
+def test_a_solution_ends_each_block_in_the_pose_its_candidate_test_found_free():
+    """An A/C table at the pole (A0, C86.25): two blocks tilted 5° toward azimuths 100° and 80°.
+    ``Episode.orient`` (the candidate tests) takes for each the solution nearest its programmed
+    words: C10/A-5 and C170/A5. Chosen next to the block before instead, the second block took
+    C-10/A-5 (nearest C10/A-5): the same tool vector with the head spun 180° from the pose its test
+    found free. ``words_of`` now writes the tested pose, unwound next to the block before."""
+    from ncfix.correct.solve import Episode
+    from ncfix.profiles import load_profile
+
+    ep = Episode.__new__(Episode)
+    ep.kin = load_profile("table-ac").kinematics
+    ep.is_vector = False
+    ep.programmed = np.tile([0.0, 0.0, 20.0, 2966.25, 0.0], (3, 1))
+    ep.before_words = ep.programmed[0].copy()
+    ep.tcp = np.ones(3, dtype=bool)
+    ep.pivot_tip, ep.h = True, 6.0
+    ep.P0, ep.N0, _ = ep.kin.forward(ep.programmed)
+    ep.C0 = ep.P0 + ep.h * ep.N0
+    N = np.array([_tilt(5.0, 100.0), _tilt(5.0, 80.0), [0.0, 0.0, 1.0]])
+    words = ep.words_of(N, np.array([False, False, True]))
+    tested, R_tested, ok = ep.orient(np.arange(2), N[:2])
+    assert ok.all()
+    assert np.allclose(tested[:, 3] % 360.0, [10.0, 170.0], atol=1e-6) and np.allclose(tested[:, 4], [-5.0, 5.0])
+    R_written = ep.kin.forward(words[:2])[2]
+    assert np.abs(R_written - R_tested).max() < 1e-9
+    assert np.allclose(words[:2, 3], [2890.0, 3050.0], atol=1e-6)  # unwound: 86.25 → 10 → 170, no 360° jumps
+    assert np.array_equal(words[2], ep.programmed[2])  # a block kept as programmed keeps its words

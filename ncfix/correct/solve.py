@@ -177,7 +177,8 @@ class Episode:
 
     def moves_hit_parts(self, level: int, start_words: np.ndarray, N: np.ndarray) -> np.ndarray:
         """(m,) bool: the moves into ``level`` from start_words (m, k) to orientation N (m, 3)
-        (its words on the branch nearest each start) hit a part, at the end pose or on the way.
+        (its words on the branch ``orient`` tests, unwound next to each start) hit a part, at the
+        end pose or on the way.
         Beads are not looked at."""
         row = int(self.rows[level])
         r = self.stage.rows
@@ -186,7 +187,8 @@ class Episode:
             end = self.orient(np.full(m, level), N)[0]
         else:
             P = self.point(np.full(m, level), N)
-            end = np.array([self.kin.inverse(P[j], N[j], start_words[j], tcp=bool(self.tcp[level])) for j in range(m)])
+            end = np.array([self.kin.inverse(P[j], N[j], start_words[j], tcp=bool(self.tcp[level]),
+                                             branch=self.programmed[level]) for j in range(m)])
         moves = Moves(start_words, end, np.repeat(r.tcp[row:row + 1], m), np.repeat(r.known_start[row:row + 1], m),
                       np.zeros(m, dtype=bool), np.repeat(r.arc[row:row + 1], m, axis=0))
         hits, _ = self.path.check(moves, BeadStore(0.0), 0, commit=False)
@@ -195,7 +197,10 @@ class Episode:
 
     def words_of(self, N: np.ndarray, programmed: np.ndarray) -> np.ndarray:
         """The words of a whole solution (L, 3) in program order: rows keeping their programmed
-        orientation keep their words exactly; rotary axes take the branch nearest the block before."""
+        orientation keep their words exactly; rotary axes take the branch ``orient`` tested (the
+        one nearest the level's programmed words: the pose ``free`` found free), unwound next to
+        the block before. (Chosen next to the block before, the branch flipped where the blocks
+        before were tilted near the pole, and the block ended 180° from its tested spin.)"""
         words = self.programmed.copy()
         previous = self.before_words if self.before_words is not None else self.programmed[0]
         for i in range(len(N)):
@@ -205,7 +210,7 @@ class Episode:
                 else:
                     P = self.point(np.array([i]), N[i:i + 1])[0]
                     try:
-                        words[i] = self.kin.inverse(P, N[i], previous, tcp=bool(self.tcp[i]))
+                        words[i] = self.kin.inverse(P, N[i], previous, tcp=bool(self.tcp[i]), branch=self.programmed[i])
                     except Unreachable:
                         words[i] = self.orient(np.array([i]), N[i:i + 1])[0][0]
             previous = words[i]

@@ -50,10 +50,11 @@ class Kinematics(Protocol):
         """
         ...
 
-    def inverse(self, p: np.ndarray, n: np.ndarray, previous: np.ndarray, tcp: bool = True) -> np.ndarray:
+    def inverse(self, p: np.ndarray, n: np.ndarray, previous: np.ndarray, tcp: bool = True,
+                branch: np.ndarray | None = None) -> np.ndarray:
         """One block: P (3,), N (3,) and the previous block's words → this block's words.
 
-        Rotary families choose the branch closest to ``previous`` within the limits and raise
-        :class:`Unreachable` when none is.
+        Rotary families choose the branch closest to ``branch`` (default ``previous``) within the
+        limits, unwound next to ``previous``, and raise :class:`Unreachable` when none is.
         """
         ...

@@ -113,19 +113,28 @@ class TwoAxisChain:
                 best = value
         return best
 
-    def orientation_words(self, n: np.ndarray, previous: tuple[float, float]) -> tuple[float, float]:
-        """Rotary words for unit vector ``n``: the branch closest to ``previous`` within limits."""
+    def orientation_words(self, n: np.ndarray, previous: tuple[float, float],
+                          branch: tuple[float, float] | None = None) -> tuple[float, float]:
+        """Rotary words for unit vector ``n``: the solution nearest ``branch`` (default
+        ``previous``) within the limits, its values placed (unwound) next to ``previous``.
+
+        Both solutions give the same N but spin the head 180° apart about it (``(a, c)`` and
+        ``(-a, c + 180°)`` on an A/C table), so the branch decides the pose. The corrector tests a
+        candidate orientation with the branch nearest its block's programmed words and writes it
+        with the same branch (``branch``): a block ends in the pose its test found free, whatever
+        the blocks before it were given."""
         n = np.asarray(n, dtype=np.float64)
         n = n / np.linalg.norm(n)
+        ref = previous if branch is None else branch
         best, best_cost = None, math.inf
         for phi1, phi2 in self.solutions(n):
             theta2 = math.degrees(phi2) / self._s[1]
-            theta1 = previous[0] if phi1 is None else math.degrees(phi1) / self._s[0]
+            theta1 = ref[0] if phi1 is None else math.degrees(phi1) / self._s[0]
             w1 = self._place(self.axes[0], theta1, previous[0])
             w2 = self._place(self.axes[1], theta2, previous[1])
             if w1 is None or w2 is None:
                 continue
-            cost = abs(_wrap(w1 - previous[0])) + abs(_wrap(w2 - previous[1]))
+            cost = abs(_wrap(w1 - ref[0])) + abs(_wrap(w2 - ref[1]))
             if cost < best_cost - 1e-12:
                 best, best_cost = (w1, w2), cost
         if best is None:
@@ -135,8 +144,10 @@ class TwoAxisChain:
             )
         return best
 
-    def inverse(self, p: np.ndarray, n: np.ndarray, previous: np.ndarray, tcp: bool = True) -> np.ndarray:
-        w1, w2 = self.orientation_words(n, (float(previous[3]), float(previous[4])))
+    def inverse(self, p: np.ndarray, n: np.ndarray, previous: np.ndarray, tcp: bool = True,
+                branch: np.ndarray | None = None) -> np.ndarray:
+        ref = None if branch is None else (float(branch[3]), float(branch[4]))
+        w1, w2 = self.orientation_words(n, (float(previous[3]), float(previous[4])), ref)
         p = np.asarray(p, dtype=np.float64).reshape(1, 3)
         if tcp:
             xyz = p[0]

@@ -25,7 +25,8 @@ class ToolVector:
         n = normalize(words[:, 3:6])
         return words[:, :3].copy(), n, minimal_rotation(n)
 
-    def inverse(self, p: np.ndarray, n: np.ndarray, previous: np.ndarray, tcp: bool = True) -> np.ndarray:
+    def inverse(self, p: np.ndarray, n: np.ndarray, previous: np.ndarray, tcp: bool = True,
+                branch: np.ndarray | None = None) -> np.ndarray:
         n = np.asarray(n, dtype=np.float64)
         n = n / np.linalg.norm(n)
         tilt = math.degrees(math.acos(max(-1.0, min(1.0, float(n[2])))))
