@@ -319,3 +319,26 @@ def test_beads_near_keeps_the_beads_within_a_radius_of_the_clipped_hull(tmp_path
     got = model._beads_near(c, r, beads)
     assert 50 < len(got) < 4000
     assert np.array_equal(got, beads[boxed & inside])
+
+
+def test_bead_exit_vectors_match_coal_epa():
+    """The compiled sphere-hull exits agree with coal's GJK/EPA, bead by bead: the same beads
+    touch, the same vectors to EPA's tolerance (inside the hull, near a face, an edge, apart)."""
+    head = trimesh.creation.cylinder(radius=4.0, height=30.0, sections=24)
+    head.apply_translation([0.0, 0.0, 15.0])
+    model = EpaModel(head, [], bead_radius_mm=1.2, tip_allowance_mm=1.0)
+    rng = np.random.default_rng(3)
+    c = np.array([10.0, -5.0, 3.0])
+    r = rotation_from_z(np.array([0.3, 0.2, 1.0]) / np.linalg.norm([0.3, 0.2, 1.0]))
+    local = rng.uniform(model._bead_lo - 3.0, model._bead_hi + 3.0, (3000, 3))
+    beads = c + local @ r.T
+    near = model._beads_near(c, r, beads)
+    mine = model.bead_exits(c, r, near)
+    pose = coal.Transform3s(r, c)
+    theirs = np.array([v if (v := model._penetration(model._bead_head, pose, model._sphere,
+                                                       coal.Transform3s(np.eye(3), b))) is not None else np.zeros(3)
+                       for b in near])
+    touch = np.linalg.norm(theirs, axis=1) > 0
+    assert 100 < touch.sum() < len(near)
+    assert ((np.linalg.norm(mine, axis=1) > 0) == touch).all()
+    assert np.abs(mine - theirs).max() < 1e-4

@@ -497,3 +497,15 @@ def test_rotation_from_z_maps_the_axis_onto_the_tool_vector():
     assert np.allclose(rots @ np.array([0.0, 0.0, 1.0]), unit, atol=1e-9)
     assert np.allclose(np.linalg.det(rots), 1.0)
     assert np.allclose(rots @ rots.transpose(0, 2, 1), np.eye(3), atol=1e-9)
+
+
+@pytest.mark.parametrize("n", [1, 7, 5000])
+def test_flat_cell_keys_group_as_numpy_unique_rows(n):
+    from ncfix.geometry.cells import first_of_each_cell, group_cells
+
+    rows = np.random.default_rng(n).integers(-40, 40, (n, 3))
+    cell_of, members, counts = group_cells(rows)
+    _, want_of, want_counts = np.unique(rows, axis=0, return_inverse=True, return_counts=True)
+    assert (cell_of == want_of.reshape(-1)).all() and (counts == want_counts).all()
+    assert (members == np.argsort(want_of.reshape(-1), kind="stable")).all()
+    assert (first_of_each_cell(rows) == np.sort(np.unique(rows, axis=0, return_index=True)[1])).all()

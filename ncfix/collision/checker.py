@@ -47,6 +47,7 @@ from ncfix.collision.deposit import BeadField, BeadStore
 from ncfix.collision.exact_beads import BeadBuckets, first_bead_hits
 from ncfix.collision.grid import DistanceGrid, build_distance_grid
 from ncfix.collision.head import HeadModel, SphereTree, build_sphere_tree
+from ncfix.geometry.cells import group_cells
 from ncfix.geometry.near import NearSurface
 from ncfix.reference import ExactReference
 
@@ -450,9 +451,7 @@ class Checker:
                 continue
             # Two levels: cells of beads (BEAD_CELL_MM cubes, a centre and a radius each), then beads.
             cell_key = np.floor(B / BEAD_CELL_MM).astype(np.int64)
-            _, cell_of, counts = np.unique(cell_key, axis=0, return_inverse=True, return_counts=True)
-            cell_of = cell_of.reshape(-1)
-            members = np.argsort(cell_of, kind="stable")
+            cell_of, members, counts = group_cells(cell_key)
             starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
             cc = np.zeros((len(counts), 3))
             np.add.at(cc, cell_of, B)

@@ -38,6 +38,7 @@ import trimesh
 
 from ncfix.correct.decompose import decompose
 from ncfix.geometry.frames import angle_between_deg, axis_rotation
+from ncfix.geometry.near import _tri_closest
 
 RotationOf = Callable[[np.ndarray], np.ndarray]
 IsFree = Callable[[np.ndarray], np.ndarray]
@@ -114,6 +115,7 @@ class EpaModel:
         self._bead_lo, self._bead_hi = np.asarray(bead_hull.bounds, dtype=np.float64)
         self._bead_normals = np.asarray(bead_hull.face_normals, dtype=np.float64)
         self._bead_offsets = np.einsum("ij,ij->i", self._bead_normals, bead_hull.triangles[:, 0])
+        self._bead_triangles = np.ascontiguousarray(bead_hull.triangles, dtype=np.float64)
         self.bead_radius_mm = float(bead_radius_mm)
         self._sphere = coal.Sphere(self.bead_radius_mm) if self.bead_radius_mm > 0 else None
 
@@ -156,15 +158,25 @@ class EpaModel:
                 if self._piece_names[i] not in bodies:
                     bodies.append(self._piece_names[i])
         if beads_mm is not None and self._sphere is not None:
-            hit_bead = False
-            for b in self._beads_near(c, r, beads_mm):
-                v = self._penetration(self._bead_head, pose, self._sphere, coal.Transform3s(np.eye(3), b))
-                if v is not None:
-                    vectors.append(v)
-                    hit_bead = True
-            if hit_bead:
+            exits = self.bead_exits(c, r, self._beads_near(c, r, beads_mm))
+            exits = exits[np.linalg.norm(exits, axis=1) > _TINY]
+            if len(exits):
+                vectors.extend(exits)
                 bodies.append("deposit")
         return _combine(vectors, bodies)
+
+    def bead_exits(self, c: np.ndarray, r: np.ndarray, beads: np.ndarray) -> np.ndarray:
+        """(k, 3) workpiece-frame exit vectors of the clipped head hull at (c, r) from each bead
+        sphere (k, 3) centres (zero where apart): the sphere-polytope case of GJK/EPA, solved
+        exactly. A centre inside the hull leaves through its nearest face plane (depth: the
+        distance to that plane plus the radius); one outside is pushed from the hull's closest
+        point on its visible faces (depth: the radius minus that distance). coal's GJK/EPA
+        (``_penetration``) gives the same vectors to its tolerance, a call per bead."""
+        if len(beads) == 0:
+            return np.zeros((0, 3))
+        local = (np.asarray(beads, dtype=np.float64) - c) @ r
+        return _sphere_exits(np.ascontiguousarray(local), self._bead_normals, self._bead_offsets,
+                             self._bead_triangles, self.bead_radius_mm) @ r.T
 
     def _penetration(self, head, pose, other, other_pose) -> np.ndarray | None:
         """The head's exit vector from one convex body (length = EPA depth), or None when apart.
@@ -378,9 +390,46 @@ def _within_hull(beads, c, r, lo, hi, normals, offsets, rad):  # pragma: no cove
     return out
 
 
+def _sphere_exits(points, normals, offsets, triangles, rad):  # pragma: no cover - compiled
+    """(m, 3) head-frame exit vectors of a convex hull (face planes normals · x = offsets, outward;
+    its triangles) from spheres of radius rad at points (m, 3): zero where a sphere clears it."""
+    m = points.shape[0]
+    out = np.zeros((m, 3))
+    for i in range(m):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        worst = -np.inf  # the largest signed plane distance, and its face
+        face = -1
+        for f in range(normals.shape[0]):
+            d = normals[f, 0] * x + normals[f, 1] * y + normals[f, 2] * z - offsets[f]
+            if d > worst:
+                worst, face = d, f
+        if worst >= rad:
+            continue  # a separating plane
+        if worst <= 0.0:  # inside: out through the nearest face plane
+            depth = rad - worst
+            out[i, 0], out[i, 1], out[i, 2] = -depth * normals[face, 0], -depth * normals[face, 1], -depth * normals[face, 2]
+            continue
+        best = np.inf
+        qx = qy = qz = 0.0
+        for f in range(normals.shape[0]):  # the closest point lies on a face the centre sees
+            if normals[f, 0] * x + normals[f, 1] * y + normals[f, 2] * z - offsets[f] <= 0.0:
+                continue
+            cx, cy, cz = _tri_closest(x, y, z, triangles[f])
+            d2 = (x - cx) ** 2 + (y - cy) ** 2 + (z - cz) ** 2
+            if d2 < best:
+                best, qx, qy, qz = d2, cx, cy, cz
+        dist = np.sqrt(best)
+        if dist >= rad or dist <= 0.0:
+            continue
+        s = (rad - dist) / dist
+        out[i, 0], out[i, 1], out[i, 2] = s * (qx - x), s * (qy - y), s * (qz - z)
+    return out
+
+
 try:
     from numba import njit as _njit
 
     _within_hull = _njit(cache=True, nogil=True)(_within_hull)
+    _sphere_exits = _njit(cache=True, nogil=True)(_sphere_exits)
 except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
     pass

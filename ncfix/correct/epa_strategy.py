@@ -63,6 +63,7 @@ import numpy as np
 from ncfix.correct.epa import VARIANTS, EpaModel
 from ncfix.correct.solve import GraphStrategy
 from ncfix.errors import ConfigError
+from ncfix.geometry.cells import first_of_each_cell
 from ncfix.geometry.frames import angle_between_deg, rotation_between, rotation_from_z
 
 # The seed's second method (E recomputed each rotation, Lami's theorem) is the default: it bends
@@ -675,7 +676,7 @@ class _EpisodeSolver:
             # E only steers: one bead per cell of the bead radius gives its direction, at a
             # fraction of the hull tests (the beads are laid at the pitch, closer than that).
             cell = np.floor(beads / self.model.bead_radius_mm).astype(np.int64)
-            self._bead_cache[l] = beads[np.sort(np.unique(cell, axis=0, return_index=True)[1])]
+            self._bead_cache[l] = beads[first_of_each_cell(cell)]
         return self._bead_cache[l]
 
     def _cached(self, l: int, offset: np.ndarray) -> bool | None:

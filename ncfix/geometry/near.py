@@ -25,8 +25,8 @@ SIGN_PITCH_MM = 0.5
 SIGN_SLACK_MM = 1e-4
 
 
-def _tri_d2(px, py, pz, t):  # pragma: no cover - compiled
-    """Squared distance from (px, py, pz) to triangle t (3, 3) (Ericson 5.1.5)."""
+def _tri_closest(px, py, pz, t):  # pragma: no cover - compiled
+    """The point of triangle t (3, 3) closest to (px, py, pz) (Ericson 5.1.5)."""
     ax, ay, az = t[0, 0], t[0, 1], t[0, 2]
     abx, aby, abz = t[1, 0] - ax, t[1, 1] - ay, t[1, 2] - az
     acx, acy, acz = t[2, 0] - ax, t[2, 1] - ay, t[2, 2] - az
@@ -64,13 +64,21 @@ def _tri_d2(px, py, pz, t):  # pragma: no cover - compiled
             denom = va + vb + vc
             if denom <= 0.0:  # degenerate: the nearest vertex
                 best = np.inf
+                qx, qy, qz = ax, ay, az
                 for k in range(3):
                     dd = (px - t[k, 0]) ** 2 + (py - t[k, 1]) ** 2 + (pz - t[k, 2]) ** 2
-                    best = min(best, dd)
-                return best
+                    if dd < best:
+                        best, qx, qy, qz = dd, t[k, 0], t[k, 1], t[k, 2]
+                return qx, qy, qz
             v = vb / denom
             w = vc / denom
             qx, qy, qz = ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w
+    return qx, qy, qz
+
+
+def _tri_d2(px, py, pz, t):  # pragma: no cover - compiled
+    """Squared distance from (px, py, pz) to triangle t (3, 3)."""
+    qx, qy, qz = _tri_closest(px, py, pz, t)
     return (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2
 
 
@@ -216,6 +224,7 @@ except ImportError:  # pragma: no cover - numba is a dependency; plain Python is
         return f
 
 # Compiled in dependency order: a compiled loop calls the compiled helpers by their module names.
+_tri_closest = _jit(_tri_closest)
 _tri_d2 = _jit(_tri_d2)
 _winding = _jit(_winding)
 _cells_kernel = _jit(_cells_kernel)
