@@ -614,3 +614,44 @@ def test_deposit_clearance_is_the_deepest_bead(bead_checker):
     assert len(sel) > 20
     exact = np.array([ref.bead_clearance(C[i], R[i], beads, 1.0) for i in sel])
     assert np.allclose(clearance[sel], exact, atol=1e-9)
+
+
+def test_compiled_descent_decides_like_the_torch_descent(checker, bead_checker, meshes):
+    """The CPU's compiled sphere-tree descent (``descent``) gives exactly the torch descent's
+    answers: undecided poses (with sweep margins and the per-level cap) and failing nodes, for a
+    part's grid, a bead field, and a field whose retired beads lie in a second field below it."""
+    from ncfix.collision import descent
+    from ncfix.collision.checker import CANDIDATE_LEVEL, ENTRY_LEVEL
+
+    _, mold = meshes
+    C, R = _random_part_poses(mold, 1500, seed=31)
+    Cb, Rb = _random_bead_poses(1500, seed=32)
+    rng = np.random.default_rng(33)
+    lin, ang = rng.uniform(0, 1.0, 1500), rng.uniform(0, 0.02, 1500)
+    store = BeadStore(1.0, exact_max=512)
+    store.field(PITCH)
+    for part in np.array_split(_wall_beads(0.5), 20):
+        store.add(part)
+    field = store.field(PITCH)
+    assert field.below is not None and field.below.count  # the MODE_FIELD_BELOW case
+    fresh = BeadStore(1.0)
+    fresh.add(_wall_beads(0.5)[::3])
+    cases = [(checker, checker.tree, checker.parts[0].grid.lower_bound, C, R),
+             (bead_checker, bead_checker.dep_tree, fresh.field(PITCH).lower_bound, Cb, Rb),
+             (bead_checker, bead_checker.dep_tree, field.lower_bound, Cb, Rb)]
+    for ck, tree, bound, P, Q in cases:
+        t = ck._tensor
+        # the bound itself, near the body and far from it (coarse grid, box), to rounding: torch's
+        # CPU sqrt is not correctly rounded (1 ulp off at times), the compiled one is
+        pts = P[rng.integers(0, len(P), 20000)] + rng.normal(0.0, 1.0, (20000, 3)) * rng.choice([1.0, 10.0, 60.0],
+                                                                                               (20000, 1))
+        assert np.allclose(descent.lower_bounds(bound, pts), bound(t(pts)).numpy(), rtol=0, atol=1e-9)
+        for cap in (4, 32):
+            want = ck._undecided(tree, bound, t(P), t(Q), t(lin), t(ang), cap)
+            got = descent.undecided(tree.host, bound, P, Q, lin, ang, ck.clearance_mm, ENTRY_LEVEL, cap)
+            assert 0 < want.sum() < len(P)
+            assert np.array_equal(got, want)
+        want = ck._failing_nodes(tree, bound, t(P), t(Q), t(lin), t(ang), CANDIDATE_LEVEL)
+        got = descent.failing_nodes(tree.host, bound, P, Q, lin, ang, ck.clearance_mm, CANDIDATE_LEVEL)
+        assert len(want[0]) > len(P)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])

@@ -43,7 +43,9 @@ import coal
 import numpy as np
 import trimesh
 
+from ncfix.collision import descent
 from ncfix.collision.deposit import BeadField, BeadStore
+from ncfix.collision.descent import HostTree
 from ncfix.collision.exact_beads import BeadBuckets, first_bead_hits
 from ncfix.collision.grid import DistanceGrid, build_distance_grid
 from ncfix.collision.head import HeadModel, SphereTree, build_sphere_tree
@@ -114,6 +116,7 @@ class TreeTensors:
     child_count: object
     children: object  # (n, 8) int64, child ids padded with -1
     level_start: np.ndarray
+    host: HostTree  # the same arrays in numpy (the compiled CPU descent)
 
 
 def tree_tensors(tree: SphereTree, device: str) -> TreeTensors:
@@ -128,7 +131,9 @@ def tree_tensors(tree: SphereTree, device: str) -> TreeTensors:
     has = slot[None, :] < tree.child_count[:, None]
     children[has] = (tree.child_start[:, None] + slot[None, :])[has]
     return TreeTensors(t(tree.center_mm), t(tree.radius_mm), t(tree.reach_mm), t(tree.child_start, torch.int64),
-                       t(tree.child_count, torch.int64), t(children, torch.int64), tree.level_start)
+                       t(tree.child_count, torch.int64), t(children, torch.int64), tree.level_start,
+                       HostTree(tree.center_mm, tree.radius_mm, tree.reach_mm, tree.child_start, tree.child_count,
+                                children, tree.level_start))
 
 
 @dataclass
@@ -173,6 +178,8 @@ class Checker:
 
         self.device = resolve_device(device)
         self.torch = torch
+        # The sphere-tree descent: compiled loops on the CPU (``descent``), torch batches elsewhere.
+        self.compiled = self.device == "cpu"
         self.pitch_mm = float(pitch_mm)
         self.clearance_mm = float(clearance_mm)
         self.bead_radius_mm = float(bead_radius_mm)
@@ -260,6 +267,8 @@ class Checker:
         return pose.cpu().numpy(), node.cpu().numpy()
 
     def _undecided_batched(self, tree, lower_bound, C, R, lin, ang, cap: int = MAX_PAIRS_PER_POSE) -> np.ndarray:
+        if self.compiled:
+            return descent.undecided(tree.host, lower_bound, C, R, lin, ang, self.clearance_mm, ENTRY_LEVEL, cap)
         out = np.zeros(len(C), dtype=bool)
         with one_thread():
             for a in range(0, len(C), POSE_BATCH):
@@ -591,24 +600,26 @@ class Checker:
         n = len(C)
         hit = np.zeros(n, dtype=bool)
         clearance = np.full(n, np.inf)
-        torch = self.torch
-        pose, node = [], []
-        for a in range(0, n, POSE_BATCH):
-            b = min(n, a + POSE_BATCH)
-            with one_thread():
-                p, q = self._failing_nodes(self.dep_tree, bead_field.lower_bound, self._tensor(C[a:b]),
-                                           self._tensor(R[a:b]), self._tensor(lin[a:b]),
-                                           self._tensor(ang[a:b]), CANDIDATE_LEVEL)
-            pose.append(p + a)
-            node.append(q)
-        pose, node = np.concatenate(pose), np.concatenate(node)
+        if self.compiled:
+            pose, node = descent.failing_nodes(self.dep_tree.host, bead_field.lower_bound, C, R, lin, ang,
+                                               self.clearance_mm, CANDIDATE_LEVEL)
+        else:
+            pose, node = [], []
+            for a in range(0, n, POSE_BATCH):
+                b = min(n, a + POSE_BATCH)
+                with one_thread():
+                    p, q = self._failing_nodes(self.dep_tree, bead_field.lower_bound, self._tensor(C[a:b]),
+                                               self._tensor(R[a:b]), self._tensor(lin[a:b]),
+                                               self._tensor(ang[a:b]), CANDIDATE_LEVEL)
+                pose.append(p + a)
+                node.append(q)
+            pose, node = np.concatenate(pose), np.concatenate(node)
         if len(pose) == 0:
             return hit, clearance
         order = np.argsort(pose, kind="stable")
         pose, node = pose[order], node[order]
-        tree = self.dep_tree
-        at = torch.as_tensor(node, device=tree.center.device)
-        node_c, radii, reach = (t[at].cpu().numpy() for t in (tree.center, tree.radius, tree.reach))
+        host = self.dep_tree.host
+        node_c, radii, reach = host.center[node], host.radius[node], host.reach[node]
         # The region the failing nodes' query balls cover: only the beads there are bucketed.
         centers = C[pose] + np.einsum("nij,nj->ni", R[pose], node_c)
         query_r = (radii + lin[pose] + ang[pose] * reach + self.bead_radius_mm + self.clearance_mm)[:, None]

@@ -1,0 +1,269 @@
+"""The sphere-tree descent of the checker as compiled loops, for the CPU.
+
+``Checker._undecided`` and ``Checker._failing_nodes`` in torch run level by level over every
+(pose, node) pair of a batch: a dozen small tensor operations per level, most of the time of a
+short program's fix spent in their overhead. On the CPU the same descent runs here pose by pose
+in one numba loop, with the same lower bounds (``DistanceGrid.lower_bound``,
+``BeadField.lower_bound``) evaluated point by point in the same arithmetic order, and the same
+rules: a node is clear when ``lb(C + R c) > r + lin + ang·reach + extra``; a pose is undecided
+when a leaf fails or more than ``cap`` nodes fail on one level. Torch stays the path for CUDA.
+
+A bound is passed as a *spec*: ``bound_spec(lower_bound)`` turns the bound method of a grid or a
+field into (mode, grid arrays, field arrays, below-field arrays), read at call time (a field's
+grids change with every add, overlay and growth).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ncfix.collision.deposit import COARSE_CELLS, COARSE_REACH_MM, FINE_LEVELS, BeadField
+from ncfix.collision.grid import DistanceGrid
+
+MODE_CLEAR = 0  # an empty field: every node is clear
+MODE_GRID = 1
+MODE_FIELD = 2
+MODE_FIELD_BELOW = 3  # a field whose retired beads are bounded by a second field (the smaller bound)
+
+# Scalars travel as tuples (values: the compiler keeps them in registers; arrays of them would be
+# reloaded at every node, as the stores of the descent may alias them).
+_NO_GRID = (np.zeros((1, 1, 1), dtype=np.float32), (0.0,) * 11)
+_NO_FIELD = (np.zeros((1, 1, 1), dtype=np.uint8), np.zeros((1, 1, 1), dtype=np.float32), (0,) * 6, (0.0,) * 11)
+
+
+def _field_arrays(f: BeadField):
+    lo = tuple(int(v) for v in np.concatenate([f.fine_lo, f.coarse_lo]))
+    box = tuple(float(v) for v in np.asarray(f.box, dtype=np.float64).reshape(-1))
+    return f.fine, f.coarse, lo, (f.pitch_mm, f.step_mm, f.radius_mm, float(FINE_LEVELS), COARSE_REACH_MM) + box
+
+
+def bound_spec(lower_bound):
+    """(mode, grid, field, below) for the kernels, from a ``lower_bound`` bound method."""
+    body = getattr(lower_bound, "__self__", None)
+    if isinstance(body, DistanceGrid):
+        dist = np.ascontiguousarray(body.dist_mm, dtype=np.float32)
+        scalars = (body.pitch_mm, body.margin_mm) + tuple(float(v) for v in body.origin_mm) + \
+            tuple(float(v) for v in body._box().reshape(-1))
+        return MODE_GRID, (dist, scalars), _NO_FIELD, _NO_FIELD
+    if isinstance(body, BeadField):
+        if body.count == 0:
+            return MODE_CLEAR, _NO_GRID, _NO_FIELD, _NO_FIELD
+        if body.below is not None and body.below.count:
+            if body.below.below is not None and body.below.below.count:
+                raise ValueError("a bead field bounded below by more than one field")
+            return MODE_FIELD_BELOW, _NO_GRID, _field_arrays(body), _field_arrays(body.below)
+        return MODE_FIELD, _NO_GRID, _field_arrays(body), _NO_FIELD
+    raise TypeError(f"no compiled bound for {lower_bound!r}")
+
+
+def _gather(grid, a, b, c, default):
+    """grid[a, b, c] as float64 (indices relative to the grid), ``default`` outside it."""
+    if a < 0 or b < 0 or c < 0 or a >= grid.shape[0] or b >= grid.shape[1] or c >= grid.shape[2]:
+        return default
+    return np.float64(grid[a, b, c])
+
+
+def _box_gap(x, y, z, x0, y0, z0, x1, y1, z1):
+    gx = max(max(x0 - x, x - x1), 0.0)
+    gy = max(max(y0 - y, y - y1), 0.0)
+    gz = max(max(z0 - z, z - z1), 0.0)
+    return np.sqrt(gx * gx + gy * gy + gz * gz)
+
+
+def _field_lb(x, y, z, f):
+    """``BeadField.lower_bound`` at one point (the same operations in the same order)."""
+    fine, coarse, lo, s = f
+    h, step, radius, levels, coarse_reach = s[0], s[1], s[2], s[3], s[4]
+    rx, ry, rz = x / h, y / h, z / h
+    ix, iy, iz = np.rint(rx), np.rint(ry), np.rint(rz)
+    dx, dy, dz = x - ix * h, y - iy * h, z - iz * h
+    off = np.sqrt(dx * dx + dy * dy + dz * dz)
+    lb = _gather(fine, np.int64(ix) - lo[0], np.int64(iy) - lo[1], np.int64(iz) - lo[2], levels) * step - off
+    kx = np.int64(np.floor((rx + 0.5) / COARSE_CELLS)) - lo[3]
+    ky = np.int64(np.floor((ry + 0.5) / COARSE_CELLS)) - lo[4]
+    kz = np.int64(np.floor((rz + 0.5) / COARSE_CELLS)) - lo[5]
+    lb = max(lb, _gather(coarse, kx, ky, kz, coarse_reach))
+    return max(lb, _box_gap(x, y, z, s[5], s[6], s[7], s[8], s[9], s[10]) - radius)
+
+
+def _grid_lb(x, y, z, g):
+    """``DistanceGrid.lower_bound`` at one point."""
+    dist, s = g
+    pitch, margin, ox, oy, oz = s[0], s[1], s[2], s[3], s[4]
+    n0, n1, n2 = dist.shape
+    i = min(max(np.int64(np.rint((x - ox) / pitch)), 0), n0 - 1)
+    j = min(max(np.int64(np.rint((y - oy) / pitch)), 0), n1 - 1)
+    k = min(max(np.int64(np.rint((z - oz) / pitch)), 0), n2 - 1)
+    dx = x - (ox + i * pitch)
+    dy = y - (oy + j * pitch)
+    dz = z - (oz + k * pitch)
+    return max(np.float64(dist[i, j, k]) - np.sqrt(dx * dx + dy * dy + dz * dz) - margin,
+               _box_gap(x, y, z, s[5], s[6], s[7], s[8], s[9], s[10]))
+
+
+def _lb(x, y, z, mode, g, f, b):
+    if mode == MODE_GRID:
+        return _grid_lb(x, y, z, g)
+    if mode == MODE_FIELD:
+        return _field_lb(x, y, z, f)
+    if mode == MODE_FIELD_BELOW:
+        return min(_field_lb(x, y, z, f), _field_lb(x, y, z, b))
+    return np.inf
+
+
+def _lb_points(P, mode, g, f, b, out):
+    for i in range(P.shape[0]):
+        out[i] = _lb(P[i, 0], P[i, 1], P[i, 2], mode, g, f, b)
+
+
+def _node_fails(C, R, p, nd, lin, ang, extra, center, radius, reach, mode, g, f, b):
+    cx, cy, cz = center[nd, 0], center[nd, 1], center[nd, 2]
+    x = C[p, 0] + (R[p, 0, 0] * cx + R[p, 0, 1] * cy + R[p, 0, 2] * cz)
+    y = C[p, 1] + (R[p, 1, 0] * cx + R[p, 1, 1] * cy + R[p, 1, 2] * cz)
+    z = C[p, 2] + (R[p, 2, 0] * cx + R[p, 2, 1] * cy + R[p, 2, 2] * cz)
+    need = radius[nd] + lin[p] + ang[p] * reach[nd] + extra
+    return _lb(x, y, z, mode, g, f, b) <= need
+
+
+def _undecided_kernel(C, R, lin, ang, extra, center, radius, reach, children, first, last, cap, mode, g, f, b, out):
+    n = C.shape[0]
+    width = children.shape[1]
+    size = max(last - first, (cap + 1) * width)
+    front = np.empty(size, dtype=np.int64)
+    fails = np.empty(size, dtype=np.int64)
+    for p in range(n):
+        m = last - first
+        for q in range(m):
+            front[q] = first + q
+        undecided = False
+        while m > 0:
+            nf = 0
+            for q in range(m):
+                nd = front[q]
+                if _node_fails(C, R, p, nd, lin, ang, extra, center, radius, reach, mode, g, f, b):
+                    if children[nd, 0] < 0 or nf == cap:  # a failing ball, or too many failing nodes
+                        undecided = True
+                        break
+                    fails[nf] = nd
+                    nf += 1
+            if undecided:
+                break
+            m = 0
+            for q in range(nf):
+                for s in range(width):
+                    ch = children[fails[q], s]
+                    if ch >= 0:
+                        front[m] = ch
+                        m += 1
+        out[p] = undecided
+
+
+def _failing_kernel(C, R, lin, ang, extra, center, radius, reach, child_start, child_count, level, size,
+                    mode, g, f, b):
+    """Per pose, the nodes at ``level`` whose sphere fails (from the root) -> (pose, node), in
+    pose order and tree order within a pose."""
+    n = C.shape[0]
+    front = np.empty(size, dtype=np.int64)
+    nxt = np.empty(size, dtype=np.int64)
+    pose_out = np.empty(max(1024, 64 * n), dtype=np.int64)
+    node_out = np.empty(pose_out.shape[0], dtype=np.int64)
+    total = 0
+    for p in range(n):
+        front[0] = 0
+        m = 1
+        for lev in range(level + 1):
+            nf = 0
+            for q in range(m):
+                nd = front[q]
+                if _node_fails(C, R, p, nd, lin, ang, extra, center, radius, reach, mode, g, f, b):
+                    if lev < level:
+                        for s in range(child_count[nd]):
+                            nxt[nf] = child_start[nd] + s
+                            nf += 1
+                        continue
+                    if total == pose_out.shape[0]:
+                        grown = np.empty(2 * total, dtype=np.int64)
+                        grown[:total] = pose_out
+                        pose_out = grown
+                        grown = np.empty(2 * total, dtype=np.int64)
+                        grown[:total] = node_out
+                        node_out = grown
+                    pose_out[total] = p
+                    node_out[total] = nd
+                    total += 1
+            front, nxt = nxt, front
+            m = nf
+            if m == 0:
+                break
+    return pose_out[:total].copy(), node_out[:total].copy()
+
+
+try:
+    from numba import njit as _njit
+
+    _gather = _njit(cache=True, nogil=True, inline="always")(_gather)
+    _box_gap = _njit(cache=True, nogil=True, inline="always")(_box_gap)
+    _field_lb = _njit(cache=True, nogil=True, inline="always")(_field_lb)
+    _grid_lb = _njit(cache=True, nogil=True, inline="always")(_grid_lb)
+    _lb = _njit(cache=True, nogil=True, inline="always")(_lb)
+    _lb_points = _njit(cache=True, nogil=True)(_lb_points)
+    _node_fails = _njit(cache=True, nogil=True, inline="always")(_node_fails)
+    _undecided_kernel = _njit(cache=True, nogil=True)(_undecided_kernel)
+    _failing_kernel = _njit(cache=True, nogil=True)(_failing_kernel)
+except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
+    pass
+
+
+class HostTree:
+    """A SphereTree's arrays for the kernels (children padded with -1, as ``TreeTensors``)."""
+
+    def __init__(self, center, radius, reach, child_start, child_count, children, level_start):
+        self.center = np.ascontiguousarray(center, dtype=np.float64)
+        self.radius = np.ascontiguousarray(radius, dtype=np.float64)
+        self.reach = np.ascontiguousarray(reach, dtype=np.float64)
+        self.child_start = np.ascontiguousarray(child_start, dtype=np.int64)
+        self.child_count = np.ascontiguousarray(child_count, dtype=np.int64)
+        self.children = np.ascontiguousarray(children, dtype=np.int64)
+        self.level_start = np.asarray(level_start, dtype=np.int64)
+        self.widest = int(np.diff(self.level_start).max())
+
+
+def _f64(a, shape):
+    return np.ascontiguousarray(a, dtype=np.float64).reshape(shape)
+
+
+def undecided(tree: HostTree, lower_bound, C, R, lin, ang, extra: float, entry: int, cap: int) -> np.ndarray:
+    """(n,) bool: as ``Checker._undecided``, entering the tree at level ``entry``."""
+    n = len(C)
+    out = np.zeros(n, dtype=bool)
+    mode, g, f, b = bound_spec(lower_bound)
+    if n == 0 or mode == MODE_CLEAR:
+        return out
+    entry = min(entry, len(tree.level_start) - 2)
+    first, last = int(tree.level_start[entry]), int(tree.level_start[entry + 1])
+    _undecided_kernel(_f64(C, (n, 3)), _f64(R, (n, 3, 3)), _f64(lin, n), _f64(ang, n), float(extra), tree.center,
+                      tree.radius, tree.reach, tree.children, first, last, int(cap), mode, g, f, b, out)
+    return out
+
+
+def failing_nodes(tree: HostTree, lower_bound, C, R, lin, ang, extra: float, level: int):
+    """(pose, node) int64 arrays: as ``Checker._failing_nodes`` (pose order, then tree order)."""
+    n = len(C)
+    mode, g, f, b = bound_spec(lower_bound)
+    empty = np.zeros(0, dtype=np.int64)
+    if n == 0 or mode == MODE_CLEAR:
+        return empty, empty
+    level = min(level, len(tree.level_start) - 2)
+    return _failing_kernel(_f64(C, (n, 3)), _f64(R, (n, 3, 3)), _f64(lin, n), _f64(ang, n), float(extra),
+                           tree.center, tree.radius, tree.reach, tree.child_start, tree.child_count, int(level),
+                           tree.widest, mode, g, f, b)
+
+
+def lower_bounds(lower_bound, points) -> np.ndarray:
+    """(m,) the compiled bound at points (m, 3): the numbers ``lower_bound`` gives in torch."""
+    P = _f64(points, (-1, 3))
+    out = np.full(len(P), np.inf)
+    mode, g, f, b = bound_spec(lower_bound)
+    if mode != MODE_CLEAR:
+        _lb_points(P, mode, g, f, b, out)
+    return out
