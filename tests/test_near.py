@@ -76,3 +76,40 @@ def test_signed_distance_matches_brute_force(solid):
                                      near.inside) for p in pts])
     assert np.allclose(got, sd, atol=1e-9)
     assert (sd < -1.0).sum() > 100 and (np.abs(sd) < 0.3).sum() > 100  # deep inside and at the surface
+
+
+def test_depth_bound_holds_and_is_tight(solid):
+    """Minus ``depth_bound`` never exceeds the signed distance (brute force), inside and out, and
+    lies within one and a half sign-cell diagonals of it inside (the nearest outside centre is at
+    most a diagonal past the surface, the point half one from its centre): what lets the
+    deepest-bead search stop early."""
+    from ncfix.geometry.near import depth_bound
+
+    pts = _points(solid, 6000, seed=8)
+    d = point_mesh_distance(pts, solid)
+    sd = np.where(winding_numbers(pts, solid) > 0.5, -d, d)
+    near = NearSurface(solid, 2.0)
+    bound = -np.array([depth_bound(p[0], p[1], p[2], near.sign_lo, near.sign_pitch, near.depth) for p in pts])
+    assert (bound <= sd).all()
+    inside = sd < 0
+    assert inside.sum() > 1000 and (sd < -3.0).sum() > 100
+    assert (sd[inside] - bound[inside] <= 1.5 * np.sqrt(3.0) * near.sign_pitch + 1e-3).all()
+
+
+def test_signed_distance_below_a_threshold(solid):
+    """``_signed_distance_below`` gives the exact signed distance where it is below the threshold
+    and the threshold itself elsewhere (outside points, and inside ones no deeper than it)."""
+    from ncfix.geometry.near import _signed_distance_below
+
+    pts = _points(solid, 3000, seed=9)
+    d = point_mesh_distance(pts, solid)
+    sd = np.where(winding_numbers(pts, solid) > 0.5, -d, d)
+    below = np.random.default_rng(10).uniform(-5.0, -0.05, len(pts))
+    near = NearSurface(solid, 2.0)
+    args = (near.triangles, near.lo, near.cell_mm, near.dims, near.cap_mm, near.start, near.listed, near.sign_lo,
+            near.sign_pitch, near.inside)
+    got = np.array([_signed_distance_below(p[0], p[1], p[2], False, t, *args) for p, t in zip(pts, below)])
+    deeper = sd < below
+    assert deeper.sum() > 100 and ((sd < 0) & ~deeper).sum() > 100
+    assert np.allclose(got[deeper], sd[deeper], atol=1e-9)
+    assert (got[~deeper] == below[~deeper]).all()

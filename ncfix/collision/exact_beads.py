@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ncfix.geometry.near import NearSurface, _signed_distance, _touch
+from ncfix.geometry.near import NearSurface, _signed_distance, _signed_distance_below, _touch, depth_bound
 
 # Bucket grid of the beads: cell edge (mm), doubled until the grid has at most MAX_CELLS cells.
 CELL_MM = 3.0
@@ -44,7 +44,7 @@ def _head_lb(x, y, z, dist, origin, pitch, box, margin):  # pragma: no cover - c
 def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
             beads, bseq, cell_start, cell_beads, glo, gcell, gdims,
             hdist, horigin, hpitch, hbox, hmargin,
-            tris, nlo, ncell, ndims, ncap, nstart, nlisted, slo, spitch, inside,
+            tris, nlo, ncell, ndims, ncap, nstart, nlisted, slo, spitch, inside, sdepth,
             bead_r, clearance, allowance, rho, deepest):  # pragma: no cover - compiled
     n = C.shape[0]
     depth = np.full(n, np.inf)
@@ -55,6 +55,7 @@ def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
     buf = np.empty((beads.shape[0], 3))
     buf_need = np.empty(beads.shape[0])
     buf_lb = np.empty(beads.shape[0])
+    buf_sd = np.empty(beads.shape[0])
     for p in range(n):
         k = 0
         c0, c1, c2 = C[p, 0], C[p, 1], C[p, 2]
@@ -113,14 +114,25 @@ def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
             if _touch(buf[i, 0], buf[i, 1], buf[i, 2], buf_need[i], buf_lb[i] <= 0.0, tris, nlo, ncell, ndims,
                       ncap, nstart, nlisted, slo, spitch, inside):
                 hit[p] = True
-                if deepest:  # the pose's clearance: the deepest of its candidates (lb > 0: at least lb)
+                if deepest:  # the pose's clearance: the deepest of its candidates
+                    # A lower bound on each one's signed distance: lb outside (lb > 0), minus the
+                    # depth bound inside; smallest first, until the bound passes the best found.
+                    for u in range(k):
+                        buf_sd[u] = buf_lb[u] if buf_lb[u] > 0.0 else \
+                            -depth_bound(buf[u, 0], buf[u, 1], buf[u, 2], slo, spitch, sdepth)
+                    by_sd = np.argsort(buf_sd[:k], kind="mergesort")
                     best = np.inf
                     for u in range(k):
-                        v = order[u]
-                        if buf_lb[v] > 0.0 and buf_lb[v] >= best:
+                        v = by_sd[u]
+                        if buf_sd[v] >= best:
                             break
-                        best = min(best, _signed_distance(buf[v, 0], buf[v, 1], buf[v, 2], buf_lb[v] > 0.0, tris, nlo,
-                                                          ncell, ndims, ncap, nstart, nlisted, slo, spitch, inside))
+                        if best < 0.0:  # only a point deeper than the best can change it
+                            sd = _signed_distance_below(buf[v, 0], buf[v, 1], buf[v, 2], buf_lb[v] > 0.0, best, tris,
+                                                        nlo, ncell, ndims, ncap, nstart, nlisted, slo, spitch, inside)
+                        else:
+                            sd = _signed_distance(buf[v, 0], buf[v, 1], buf[v, 2], buf_lb[v] > 0.0, tris, nlo, ncell,
+                                                  ndims, ncap, nstart, nlisted, slo, spitch, inside)
+                        best = min(best, sd)
                     depth[p] = best
                 break
     return hit, depth, candidates, tested
@@ -182,6 +194,6 @@ def first_bead_hits(C, R, lin, ang, seq, node_pose, node_c, node_r, node_reach, 
         buckets.dims, head_grid.dist_mm, np.asarray(head_grid.origin_mm, f64), float(head_grid.pitch_mm),
         np.ascontiguousarray(head_grid._box(), f64), float(head_grid.margin_mm),
         near.triangles, near.lo, near.cell_mm, near.dims, near.cap_mm, near.start, near.listed, near.sign_lo,
-        near.sign_pitch, near.inside,
+        near.sign_pitch, near.inside, near.depth,
         float(bead_r), float(clearance), float(allowance), float(rho), bool(deepest))
     return hit, depth, candidates, int(tested)

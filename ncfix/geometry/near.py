@@ -151,33 +151,61 @@ def _touch(px, py, pz, r, inside_check, tris, lo, cell, dims, cap, start, listed
     if not inside_check:
         return False
     # No surface within r: the centre is inside exactly when the solid holds it (d > r).
-    side = _sign_certain(px, py, pz, r, slo, spitch, inside)
-    if side == 0:
-        return _winding(px, py, pz, tris) > 0.5
-    return side < 0
+    return _side(px, py, pz, r, tris, slo, spitch, inside) < 0
+
+
+def _sign_cell(px, py, pz, slo, spitch, shape):  # pragma: no cover - compiled
+    """The sign-grid cell whose centre is nearest the point and the distance to it; ix = -1 when
+    the point lies outside the grid."""
+    ix = int(np.rint((px - slo[0]) / spitch))
+    iy = int(np.rint((py - slo[1]) / spitch))
+    iz = int(np.rint((pz - slo[2]) / spitch))
+    if not (0 <= ix < shape[0] and 0 <= iy < shape[1] and 0 <= iz < shape[2]):
+        return -1, 0, 0, 0.0
+    off = np.sqrt((px - slo[0] - ix * spitch) ** 2 + (py - slo[1] - iy * spitch) ** 2 + (pz - slo[2] - iz * spitch) ** 2)
+    return ix, iy, iz, off
 
 
 def _sign_certain(px, py, pz, d, slo, spitch, inside):  # pragma: no cover - compiled
     """The side of a point whose distance to the surface is d, from the nearest sign-grid centre
     c: 1 outside, -1 inside, 0 unknown. The ball of radius d about the point holds no surface, so
     when |p - c| < d (less the voxelizer's ray jitter) p is on c's side."""
-    nx, ny, nz = inside.shape
-    ix = int(np.rint((px - slo[0]) / spitch))
-    iy = int(np.rint((py - slo[1]) / spitch))
-    iz = int(np.rint((pz - slo[2]) / spitch))
-    if not (0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz):
+    ix, iy, iz, off = _sign_cell(px, py, pz, slo, spitch, inside.shape)
+    if ix < 0:
         return 1  # the sign grid covers the solid's box: outside it is outside
-    off = np.sqrt((px - slo[0] - ix * spitch) ** 2 + (py - slo[1] - iy * spitch) ** 2 + (pz - slo[2] - iz * spitch) ** 2)
     if off + SIGN_SLACK_MM >= d:
         return 0
     return -1 if inside[ix, iy, iz] else 1
 
 
-def _signed_distance(px, py, pz, outside, tris, lo, cell, dims, cap, start, listed, slo, spitch,
-                     inside):  # pragma: no cover - compiled
-    """Signed distance (positive outside) from a point to the closed solid: the cell's list when
-    the surface is within ``cap`` (exact then), else every triangle; the side from the sign grid
-    where it is certain, else the winding number; ``outside``: the caller knows it is outside."""
+def _signed_distance_below(px, py, pz, outside, below, tris, lo, cell, dims, cap, start, listed, slo, spitch,
+                           inside):  # pragma: no cover - compiled
+    """``_signed_distance`` where it is below ``below`` (< 0), else ``below`` itself: a triangle
+    within -below of the point ends the search (the point is then no deeper than that)."""
+    if outside:
+        return below
+    best = _nearest_d2(px, py, pz, below * below, tris, lo, cell, dims, cap, start, listed)
+    if best < 0.0:
+        return below
+    d = np.sqrt(best)
+    side = _side(px, py, pz, d, tris, slo, spitch, inside)
+    return d * side if side < 0 else below
+
+
+def depth_bound(px, py, pz, slo, spitch, depth):  # pragma: no cover - compiled
+    """An upper bound on how deep below the surface the point lies (0 where it is certainly
+    outside): that of its nearest sign-grid centre c plus |p - c| (distance is 1-Lipschitz). So
+    the signed distance at p is at least minus this."""
+    ix, iy, iz, off = _sign_cell(px, py, pz, slo, spitch, depth.shape)
+    if ix < 0:
+        return 0.0  # the sign grid covers the solid's box: outside it is outside
+    return np.float64(depth[ix, iy, iz]) + off
+
+
+def _nearest_d2(px, py, pz, stop2, tris, lo, cell, dims, cap, start, listed):  # pragma: no cover - compiled
+    """The squared distance from a point to the surface: the cell's list when the surface is
+    within ``cap`` (exact then), else every triangle; -1 as soon as a triangle lies within
+    squared distance ``stop2`` (never when stop2 < 0)."""
     best = np.inf
     x = int(np.floor((px - lo[0]) / cell))
     y = int(np.floor((py - lo[1]) / cell))
@@ -185,17 +213,36 @@ def _signed_distance(px, py, pz, outside, tris, lo, cell, dims, cap, start, list
     if 0 <= x < dims[0] and 0 <= y < dims[1] and 0 <= z < dims[2]:
         k = (x * dims[1] + y) * dims[2] + z
         for j in range(start[k], start[k + 1]):
-            best = min(best, _tri_d2(px, py, pz, tris[listed[j]]))
-    if best > cap * cap:
+            d2 = _tri_d2(px, py, pz, tris[listed[j]])
+            if d2 <= stop2:
+                return -1.0
+            best = min(best, d2)
+    if best > cap * cap:  # the list holds every triangle within cap: beyond it, read them all
         for j in range(tris.shape[0]):
-            best = min(best, _tri_d2(px, py, pz, tris[j]))
-    d = np.sqrt(best)
-    if outside:
-        return d
+            d2 = _tri_d2(px, py, pz, tris[j])
+            if d2 <= stop2:
+                return -1.0
+            best = min(best, d2)
+    return best
+
+
+def _side(px, py, pz, d, tris, slo, spitch, inside):  # pragma: no cover - compiled
+    """-1 inside, 1 outside, for a point at distance d from the surface: the sign grid where it
+    is certain, else the winding number."""
     side = _sign_certain(px, py, pz, d, slo, spitch, inside)
     if side == 0:
         side = -1 if _winding(px, py, pz, tris) > 0.5 else 1
-    return d * side
+    return side
+
+
+def _signed_distance(px, py, pz, outside, tris, lo, cell, dims, cap, start, listed, slo, spitch,
+                     inside):  # pragma: no cover - compiled
+    """Signed distance (positive outside) from a point to the closed solid (``_nearest_d2``, then
+    ``_side``); ``outside``: the caller knows it is outside."""
+    d = np.sqrt(_nearest_d2(px, py, pz, -1.0, tris, lo, cell, dims, cap, start, listed))
+    if outside:
+        return d
+    return d * _side(px, py, pz, d, tris, slo, spitch, inside)
 
 
 def _first_touch_kernel(points, radii, inside_check, group, n_groups, tris, lo, cell, dims, cap,
@@ -228,9 +275,14 @@ _tri_closest = _jit(_tri_closest)
 _tri_d2 = _jit(_tri_d2)
 _winding = _jit(_winding)
 _cells_kernel = _jit(_cells_kernel)
+_sign_cell = _jit(_sign_cell)
 _sign_certain = _jit(_sign_certain)
+_side = _jit(_side)
 _touch = _jit(_touch)
+_nearest_d2 = _jit(_nearest_d2)
 _signed_distance = _jit(_signed_distance)
+depth_bound = _jit(depth_bound)
+_signed_distance_below = _jit(_signed_distance_below)
 _count_kernel = _jit(_count_kernel)
 _first_touch_kernel = _jit(_first_touch_kernel)
 
@@ -266,6 +318,22 @@ class NearSurface:
         self.sign_lo, self.sign_pitch = np.asarray(grid.origin_mm, dtype=np.float64), float(SIGN_PITCH_MM)
         counts[:] = 0
         _cells_kernel(self.triangles, self.lo, self.cell_mm, self.dims, reach, counts, self.start, self.listed, True)
+        self._depth: np.ndarray | None = None
+
+    @property
+    def depth(self) -> np.ndarray:
+        """(sign grid shape) float32 mm: an upper bound on the depth below the surface of every
+        sign-grid centre (``depth_bound``; made on first use): the distance to the nearest centre
+        outside, plus the slack. A centre outside is at most the slack deep (the voxelizer's ray
+        jitter); one inside at most that far deep, as the segment to the outside centre crosses
+        the surface."""
+        if self._depth is None:
+            from ncfix.collision.grid import EDT_SLACK_MM, distance_transform
+
+            d = distance_transform(self.inside, self.sign_pitch) if self.inside.any() else \
+                np.zeros(self.inside.shape, dtype=np.float32)
+            self._depth = np.ascontiguousarray(d + np.float32(SIGN_SLACK_MM + EDT_SLACK_MM), dtype=np.float32)
+        return self._depth
 
     def first_touch(self, points: np.ndarray, radii: np.ndarray, inside_check: np.ndarray, group: np.ndarray,
                     n_groups: int) -> tuple[np.ndarray, int]:
