@@ -655,3 +655,28 @@ def test_compiled_descent_decides_like_the_torch_descent(checker, bead_checker, 
         got = descent.failing_nodes(tree.host, bound, P, Q, lin, ang, ck.clearance_mm, CANDIDATE_LEVEL)
         assert len(want[0]) > len(P)
         assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+@pytest.mark.parametrize("threads", ["1", "3"])
+def test_deposit_answers_do_not_depend_on_the_threads(bead_checker, monkeypatch, threads):
+    """The compiled descent and exact bead test cut a batch into runs of poses for several threads
+    (``split``): hits, clearances and the counts of exact tests are those of the default setting."""
+    beads = _wall_beads(0.5)
+    store = BeadStore(1.0)
+    store.add(beads)
+    C, R = _random_bead_poses(1200, seed=41)
+    n = len(C)
+    args = (C, R, np.linspace(0.0, 0.5, n), np.arange(n), store, np.zeros((0, 3)), np.zeros(0, dtype=np.int64))
+
+    def run():
+        before = dict(vars(bead_checker.stats))
+        hit, clearance = bead_checker.check_deposit(*args)
+        after = vars(bead_checker.stats)
+        return hit, clearance, {k: after[k] - before[k] for k in before if isinstance(before[k], int)}
+
+    want = run()
+    monkeypatch.setenv("NCFIX_THREADS", threads)
+    got = run()
+    assert 0 < want[0].sum() < n
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    assert got[2] == want[2]

@@ -47,6 +47,7 @@ from ncfix.collision import descent
 from ncfix.collision.deposit import BeadField, BeadStore
 from ncfix.collision.descent import HostTree
 from ncfix.collision.exact_beads import BeadBuckets, first_bead_hits
+from ncfix.collision.split import thread_count
 from ncfix.collision.grid import DistanceGrid, build_distance_grid
 from ncfix.collision.head import HeadModel, SphereTree, build_sphere_tree
 from ncfix.geometry.cells import group_cells
@@ -180,6 +181,7 @@ class Checker:
         self.torch = torch
         # The sphere-tree descent: compiled loops on the CPU (``descent``), torch batches elsewhere.
         self.compiled = self.device == "cpu"
+        thread_count()  # a bad $NCFIX_THREADS is an error here, before any work
         self.pitch_mm = float(pitch_mm)
         self.clearance_mm = float(clearance_mm)
         self.bead_radius_mm = float(bead_radius_mm)

@@ -3,7 +3,7 @@
 ``Checker._undecided`` and ``Checker._failing_nodes`` in torch run level by level over every
 (pose, node) pair of a batch: a dozen small tensor operations per level, most of the time of a
 short program's fix spent in their overhead. On the CPU the same descent runs here pose by pose
-in one numba loop, with the same lower bounds (``DistanceGrid.lower_bound``,
+in one numba loop (runs of poses on the machine's cores: ``split``), with the same lower bounds (``DistanceGrid.lower_bound``,
 ``BeadField.lower_bound``) evaluated point by point in the same arithmetic order, and the same
 rules: a node is clear when ``lb(C + R c) > r + lin + ang·reach + extra``; a pose is undecided
 when a leaf fails or more than ``cap`` nodes fail on one level. Torch stays the path for CUDA.
@@ -19,6 +19,7 @@ import numpy as np
 
 from ncfix.collision.deposit import COARSE_CELLS, COARSE_REACH_MM, FINE_LEVELS, BeadField
 from ncfix.collision.grid import DistanceGrid
+from ncfix.collision.split import map_runs
 
 MODE_CLEAR = 0  # an empty field: every node is clear
 MODE_GRID = 1
@@ -241,8 +242,13 @@ def undecided(tree: HostTree, lower_bound, C, R, lin, ang, extra: float, entry: 
         return out
     entry = min(entry, len(tree.level_start) - 2)
     first, last = int(tree.level_start[entry]), int(tree.level_start[entry + 1])
-    _undecided_kernel(_f64(C, (n, 3)), _f64(R, (n, 3, 3)), _f64(lin, n), _f64(ang, n), float(extra), tree.center,
-                      tree.radius, tree.reach, tree.children, first, last, int(cap), mode, g, f, b, out)
+    C, R, lin, ang = _f64(C, (n, 3)), _f64(R, (n, 3, 3)), _f64(lin, n), _f64(ang, n)
+
+    def run(lo, hi):
+        _undecided_kernel(C[lo:hi], R[lo:hi], lin[lo:hi], ang[lo:hi], float(extra), tree.center, tree.radius,
+                          tree.reach, tree.children, first, last, int(cap), mode, g, f, b, out[lo:hi])
+
+    map_runs(run, n)
     return out
 
 
@@ -254,9 +260,18 @@ def failing_nodes(tree: HostTree, lower_bound, C, R, lin, ang, extra: float, lev
     if n == 0 or mode == MODE_CLEAR:
         return empty, empty
     level = min(level, len(tree.level_start) - 2)
-    return _failing_kernel(_f64(C, (n, 3)), _f64(R, (n, 3, 3)), _f64(lin, n), _f64(ang, n), float(extra),
-                           tree.center, tree.radius, tree.reach, tree.child_start, tree.child_count, int(level),
-                           tree.widest, mode, g, f, b)
+    C, R, lin, ang = _f64(C, (n, 3)), _f64(R, (n, 3, 3)), _f64(lin, n), _f64(ang, n)
+
+    def run(lo, hi):
+        pose, node = _failing_kernel(C[lo:hi], R[lo:hi], lin[lo:hi], ang[lo:hi], float(extra), tree.center,
+                                     tree.radius, tree.reach, tree.child_start, tree.child_count, int(level),
+                                     tree.widest, mode, g, f, b)
+        return pose + lo, node
+
+    parts = map_runs(run, n)
+    if len(parts) == 1:
+        return parts[0]
+    return np.concatenate([p for p, _ in parts]), np.concatenate([q for _, q in parts])
 
 
 def lower_bounds(lower_bound, points) -> np.ndarray:

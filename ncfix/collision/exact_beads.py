@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ncfix.collision.split import map_runs
 from ncfix.geometry.near import NearSurface, _signed_distance, _signed_distance_below, _touch, depth_bound
 
 # Bucket grid of the beads: cell edge (mm), doubled until the grid has at most MAX_CELLS cells.
@@ -186,14 +187,25 @@ def first_bead_hits(C, R, lin, ang, seq, node_pose, node_c, node_r, node_reach, 
     n = len(C)
     node_start = np.searchsorted(node_pose, np.arange(n + 1)).astype(np.int64)
     f64 = np.float64
-    hit, depth, candidates, tested = _kernel(
-        np.ascontiguousarray(C, f64), np.ascontiguousarray(R, f64), np.ascontiguousarray(lin, f64),
-        np.ascontiguousarray(ang, f64), np.ascontiguousarray(seq, np.int64), node_start,
-        np.ascontiguousarray(node_c, f64), np.ascontiguousarray(node_r, f64), np.ascontiguousarray(node_reach, f64),
-        buckets.beads, buckets.seq, buckets.cell_start, buckets.cell_beads, buckets.lo, float(buckets.cell),
-        buckets.dims, head_grid.dist_mm, np.asarray(head_grid.origin_mm, f64), float(head_grid.pitch_mm),
-        np.ascontiguousarray(head_grid._box(), f64), float(head_grid.margin_mm),
-        near.triangles, near.lo, near.cell_mm, near.dims, near.cap_mm, near.start, near.listed, near.sign_lo,
-        near.sign_pitch, near.inside, near.depth,
-        float(bead_r), float(clearance), float(allowance), float(rho), bool(deepest))
-    return hit, depth, candidates, int(tested)
+    C, R = np.ascontiguousarray(C, f64), np.ascontiguousarray(R, f64)
+    lin, ang, seq = np.ascontiguousarray(lin, f64), np.ascontiguousarray(ang, f64), np.ascontiguousarray(seq, np.int64)
+    node_c, node_r = np.ascontiguousarray(node_c, f64), np.ascontiguousarray(node_r, f64)
+    node_reach = np.ascontiguousarray(node_reach, f64)
+    hbox, horigin = np.ascontiguousarray(head_grid._box(), f64), np.asarray(head_grid.origin_mm, f64)
+    sdepth = near.depth  # built lazily: once, here, not in the threads
+
+    def run(lo, hi):  # poses lo..hi-1: node_start[lo..hi] still index the whole node arrays
+        return _kernel(
+            C[lo:hi], R[lo:hi], lin[lo:hi], ang[lo:hi], seq[lo:hi], node_start[lo:hi + 1], node_c, node_r,
+            node_reach, buckets.beads, buckets.seq, buckets.cell_start, buckets.cell_beads, buckets.lo,
+            float(buckets.cell), buckets.dims, head_grid.dist_mm, horigin, float(head_grid.pitch_mm), hbox,
+            float(head_grid.margin_mm), near.triangles, near.lo, near.cell_mm, near.dims, near.cap_mm, near.start,
+            near.listed, near.sign_lo, near.sign_pitch, near.inside, sdepth,
+            float(bead_r), float(clearance), float(allowance), float(rho), bool(deepest))
+
+    parts = map_runs(run, n)
+    if len(parts) == 1:
+        hit, depth, candidates, tested = parts[0]
+        return hit, depth, candidates, int(tested)
+    return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
+            np.concatenate([p[2] for p in parts]), int(sum(p[3] for p in parts)))
