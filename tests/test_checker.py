@@ -680,3 +680,40 @@ def test_deposit_answers_do_not_depend_on_the_threads(bead_checker, monkeypatch,
     assert 0 < want[0].sum() < n
     assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
     assert got[2] == want[2]
+
+
+def test_deposit_free_reuses_a_tips_beads_only_while_they_hold(bead_checker):
+    """``deposit_free`` keeps the beads it gathered per tip: asked again at the same tips (other
+    orientations, other batch sizes) it answers as with nothing kept, and a store that grew, or
+    other pending beads, are gathered afresh."""
+    beads = _wall_beads(0.5)
+    store = BeadStore(1.0)
+    store.add(beads[: len(beads) // 2])
+    rng = np.random.default_rng(51)
+    tips = np.stack([rng.uniform(-30, 30, 12), rng.uniform(-25, 25, 12), rng.uniform(-2, 45, 12)], axis=1)
+    pending, pending_seq = beads[len(beads) // 2:], np.arange(len(beads) - len(beads) // 2) // 40
+    none = np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+
+    def ask(k, seed, extra=none):
+        r = np.random.default_rng(seed)
+        which = r.integers(0, len(tips), k)
+        C, R, seq = tips[which], _random_rotations(r, k, 45.0), which * 3
+        bead_checker._tip_cache = None
+        fresh = bead_checker.deposit_free(C, R, seq, store, *extra)
+        return C, R, seq, fresh
+
+    checks = 0
+    for extra in (none, (pending, pending_seq)):
+        for k, seed in ((5, 1), (40, 2), (7, 3), (64, 4)):
+            C, R, seq, fresh = ask(k, seed, extra)
+            for again in range(2):  # the first call fills the cache, the next ones use it
+                assert np.array_equal(bead_checker.deposit_free(C, R, seq, store, *extra), fresh)
+                checks += 1
+        kept = bead_checker._tip_cache
+        assert kept is not None and kept[3]
+    C, R, seq, before = ask(64, 4, (pending, pending_seq))
+    store.add(beads + [0.0, 2.5, 0.0])  # the store grows: what was kept no longer holds
+    C, R, seq, fresh = ask(64, 4, (pending, pending_seq))
+    bead_checker._tip_cache = kept
+    assert np.array_equal(bead_checker.deposit_free(C, R, seq, store, pending, pending_seq), fresh)
+    assert (before & ~fresh).any() and fresh.any() and checks == 16

@@ -499,6 +499,31 @@ def test_rotation_from_z_maps_the_axis_onto_the_tool_vector():
     assert np.allclose(rots @ rots.transpose(0, 2, 1), np.eye(3), atol=1e-9)
 
 
+def test_rotation_between_is_the_minimal_rotation_in_every_case():
+    """The compiled Rodrigues loop against the matrix formula I + K + K²/(1 + c) in numpy, for
+    general pairs, both broadcast shapes and a single pair; opposite directions a half turn."""
+    from ncfix.geometry.frames import minimal_rotation, rotation_between
+
+    rng = np.random.default_rng(7)
+    a, b = rng.normal(size=(2000, 3)) * 5, rng.normal(size=(2000, 3))
+    b[:3] = [[1, 0, 0], [0, 0, 1], [-1, 2, 3]]
+    a[:3] = [[-2, 0, 0], [0, 0, -1], [1, -2, -3]]  # opposite: x (the helper becomes y), z, general
+    ah, bh = (v / np.linalg.norm(v, axis=1, keepdims=True) for v in (a, b))
+    v, c = np.cross(ah, bh), (ah * bh).sum(axis=1)
+    k = np.zeros((len(a), 3, 3))
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2], k[:, 1, 0], k[:, 2, 0], k[:, 2, 1] = -v[:, 2], v[:, 1], -v[:, 0], v[:, 2], \
+        -v[:, 1], v[:, 0]
+    want = np.eye(3) + k + (k @ k) / np.where(c < -1 + 1e-12, np.inf, 1 + c)[:, None, None]
+    got = rotation_between(a, b)
+    assert np.allclose(got[3:], want[3:], rtol=0, atol=1e-12)
+    for i in range(3):  # a half turn: R â = b̂, R = Rᵀ, det 1
+        assert np.allclose(got[i] @ ah[i], bh[i], atol=1e-12) and np.allclose(got[i], got[i].T, atol=1e-15)
+        assert np.isclose(np.linalg.det(got[i]), 1.0)
+    assert np.array_equal(rotation_between(a[5], b[5]), got[5])
+    assert np.array_equal(rotation_between(a[5], b[:4]), rotation_between(np.tile(a[5], (4, 1)), b[:4]))
+    assert np.array_equal(minimal_rotation(b), rotation_between(np.array([0.0, 0.0, 1.0]), b))
+
+
 @pytest.mark.parametrize("n", [1, 7, 5000])
 def test_flat_cell_keys_group_as_numpy_unique_rows(n):
     from ncfix.geometry.cells import first_of_each_cell, group_cells

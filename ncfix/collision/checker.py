@@ -74,6 +74,10 @@ GROUP_LEVELS_MM = (24.0, 6.0, 1.5)
 IDLE_CALLS = 8
 # Cells (mm) grouping beads in the exact deposit test of candidates (a cell cleared clears its beads).
 BEAD_CELL_MM = 4.0
+# deposit_free's beads gathered per tip: kept for this many tips (then dropped), with this much more
+# reach than asked for so that a tip asked again (its centre moved by rounding) finds them.
+TIP_CACHE_MAX = 64
+TIP_CACHE_SLACK_MM = 0.01
 # A sample that hits only with its sweep margin is tested again as finer samples, this deep
 # (path.Refiner: REFINE_PARTS samples a level): false alarms of the margin go, hits stay.
 REFINE_LEVELS = 2
@@ -198,6 +202,7 @@ class Checker:
         self.stats = CheckerStats()
         self._idle_levels: dict = {}
         self._store_beads = None  # (store state, its kept beads concatenated)
+        self._tip_cache = None  # (store state, pending, pending_seq, {tip key: (centre, radius, cells)})
         if self.bead_radius_mm > 0:
             clipped = self.reference._bead_head
             # The head above the allowance, in the head frame, at the pitch (filters candidate beads).
@@ -444,31 +449,16 @@ class Checker:
         if store.old is not None:  # retired beads: only their field decides (``_exact_deposit``)
             zero = np.zeros(n)
             free &= ~self._undecided_batched(self.dep_tree, store.old.lower_bound, C, R, zero, zero)
-        trees = store.trees() if store.count else []
         # Poses of one level share their tip (tip pivot) or stay within h of it (point pivot).
         keys = np.round(C / 1e-3).astype(np.int64)
         for key in np.unique(np.column_stack([seq, keys])[free], axis=0):
             sel = np.flatnonzero((seq == key[0]) & (keys == key[1:]).all(axis=1) & free)
             centre = C[sel].mean(axis=0)
             radius = reach + float(np.linalg.norm(C[sel] - centre, axis=1).max())
-            # Store order is laying order: runs of consecutive beads on one move are collinear.
-            beads = [pts[np.sort(np.asarray(tree.query_ball_point(centre, radius), dtype=np.int64))]
-                     for tree, pts in trees]
-            if len(pending):
-                seen = pending[pending_seq <= key[0]]
-                beads.append(seen[np.linalg.norm(seen - centre, axis=1) <= radius])
-            B = np.concatenate(beads) if beads else np.zeros((0, 3))
-            if len(B) == 0:
+            cells = self._tip_cells(store, pending, pending_seq, tuple(int(v) for v in key), centre, radius)
+            if cells is None:
                 continue
-            # Two levels: cells of beads (BEAD_CELL_MM cubes, a centre and a radius each), then beads.
-            cell_key = np.floor(B / BEAD_CELL_MM).astype(np.int64)
-            cell_of, members, counts = group_cells(cell_key)
-            starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-            cc = np.zeros((len(counts), 3))
-            np.add.at(cc, cell_of, B)
-            cc /= counts[:, None]
-            cr = np.zeros(len(counts))
-            np.maximum.at(cr, cell_of, np.linalg.norm(B - cc[cell_of], axis=1))
+            B, members, counts, starts, cc, cr = cells
             for a in range(0, len(sel), 256):
                 part = sel[a:a + 256]
                 lc = np.einsum("pji,pcj->pci", R[part], cc[None, :, :] - C[part, None, :])
@@ -493,6 +483,47 @@ class Checker:
                 self.stats.exact_bead_tests += tested
                 free[part[first >= 0]] = False
         return free
+
+    def _tip_cells(self, store: BeadStore, pending: np.ndarray, pending_seq: np.ndarray, key: tuple,
+                   centre: np.ndarray, radius: float):
+        """The beads a pose at ``key`` (seq, tip in µm) sees within ``radius`` of ``centre`` and their
+        cells (``deposit_free``): (beads, members, counts, starts, cell centres, cell radii), or
+        None when there are none. A correction's walk asks at one tip many times: the gathering
+        is kept per tip for one store state and one set of pending beads, and reused while the
+        ball asked for lies inside the ball gathered (a superset of the beads: the same answers,
+        as every later filter is a bound and the last test exact)."""
+        state = (id(store), store.count, store.retired)
+        cache = self._tip_cache
+        if cache is None or cache[0] != state or cache[1] is not pending or cache[2] is not pending_seq:
+            cache = self._tip_cache = (state, pending, pending_seq, {})
+        tips = cache[3]
+        got = tips.get(key)
+        if got is not None and float(np.linalg.norm(centre - got[0])) + radius <= got[1]:
+            return got[2]
+        radius = radius + TIP_CACHE_SLACK_MM
+        # Store order is laying order: runs of consecutive beads on one move are collinear.
+        beads = [pts[np.sort(np.asarray(tree.query_ball_point(centre, radius), dtype=np.int64))]
+                 for tree, pts in (store.trees() if store.count else [])]
+        if len(pending):
+            seen = pending[pending_seq <= key[0]]
+            beads.append(seen[np.linalg.norm(seen - centre, axis=1) <= radius])
+        B = np.concatenate(beads) if beads else np.zeros((0, 3))
+        cells = None
+        if len(B):
+            # Two levels: cells of beads (BEAD_CELL_MM cubes, a centre and a radius each), then beads.
+            cell_key = np.floor(B / BEAD_CELL_MM).astype(np.int64)
+            cell_of, members, counts = group_cells(cell_key)
+            starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+            cc = np.zeros((len(counts), 3))
+            np.add.at(cc, cell_of, B)
+            cc /= counts[:, None]
+            cr = np.zeros(len(counts))
+            np.maximum.at(cr, cell_of, np.linalg.norm(B - cc[cell_of], axis=1))
+            cells = (B, members, counts, starts, cc, cr)
+        if len(tips) >= TIP_CACHE_MAX:
+            tips.clear()
+        tips[key] = (centre.copy(), radius, cells)
+        return cells
 
     # -- deposit -----------------------------------------------------------------------------
     def check_deposit(self, C: np.ndarray, R: np.ndarray, margin: np.ndarray, seq: np.ndarray,

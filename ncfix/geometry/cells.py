@@ -17,15 +17,45 @@ _MAX_SPAN = 1 << 62
 def flat_keys(rows: np.ndarray) -> np.ndarray | None:
     """(n,) int64 keys of (n, 3) int64 rows, ordered as the rows are lexicographically, or None
     when their bounding box is too large for one int64 (then sort the rows themselves)."""
-    rows = np.asarray(rows, dtype=np.int64).reshape(-1, 3)
+    rows = np.ascontiguousarray(rows, dtype=np.int64).reshape(-1, 3)
     if len(rows) == 0:
         return np.zeros(0, dtype=np.int64)
-    lo = rows.min(axis=0)
-    span = [int(v) + 1 for v in rows.max(axis=0) - lo]
+    lo, hi = _box(rows)
+    span = [int(b) - int(a) + 1 for a, b in zip(lo, hi)]
     if span[0] * span[1] * span[2] >= _MAX_SPAN:
         return None
-    rel = rows - lo
-    return (rel[:, 0] * span[1] + rel[:, 1]) * span[2] + rel[:, 2]
+    return _keys(rows, lo, span[1], span[2])
+
+
+def _box(rows):  # pragma: no cover - compiled
+    """The rows' smallest and largest value in each column (one pass; numpy's axis-0 min and max
+    walk the columns with a stride, five times slower on these short arrays)."""
+    lo = rows[0].copy()
+    hi = rows[0].copy()
+    for i in range(1, rows.shape[0]):
+        for j in range(3):
+            v = rows[i, j]
+            if v < lo[j]:
+                lo[j] = v
+            elif v > hi[j]:
+                hi[j] = v
+    return lo, hi
+
+
+def _keys(rows, lo, s1, s2):  # pragma: no cover - compiled
+    out = np.empty(rows.shape[0], np.int64)
+    for i in range(rows.shape[0]):
+        out[i] = ((rows[i, 0] - lo[0]) * s1 + (rows[i, 1] - lo[1])) * s2 + (rows[i, 2] - lo[2])
+    return out
+
+
+try:
+    from numba import njit as _njit
+
+    _box = _njit(cache=True, nogil=True)(_box)
+    _keys = _njit(cache=True, nogil=True)(_keys)
+except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
+    pass
 
 
 def group_cells(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
