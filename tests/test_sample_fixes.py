@@ -228,3 +228,31 @@ def test_sample_fix(name, machine, mold, strategy):
             assert not same, f"{name} with {strategy} is idempotent now: take it off NOT_IDEMPOTENT"
             pytest.xfail(NOT_IDEMPOTENT[(name, strategy)])
         assert same
+
+
+def test_rechecks_find_the_same_hits_without_clearances(monkeypatch):
+    """The correction's re-checks ask for hits only (``clearances=False``: no deepest-bead search,
+    a hit tested again without its sweep margin instead): on the deposit wall's epa fix every
+    re-check gives the hits it gives with the clearances computed, and the fix its output."""
+    from ncfix.collision.path import PathChecker
+
+    original = PathChecker.check
+    seen = []
+
+    def both(self, moves, store, seq0, *, commit=True, prior=None, clearances=True):
+        if commit:
+            return original(self, moves, store, seq0, commit=commit, prior=prior, clearances=clearances)
+        full, end = original(self, moves, store, seq0, commit=False, prior=prior, clearances=True)
+        fast, end2 = original(self, moves, store, seq0, commit=False, prior=prior, clearances=clearances)
+        assert end == end2 and np.array_equal(full.part_hit, fast.part_hit)
+        assert np.array_equal(full.deposit_hit, fast.deposit_hit)
+        seen.append((clearances, int(full.deposit_hit.sum())))
+        return fast, end2
+
+    data = (SAMPLES / "deposit_wall.nc").read_bytes()
+    settings = _settings("deposit_wall.nc", "ijk", False, "epa")
+    want, _ = _run(data, settings)
+    monkeypatch.setattr(PathChecker, "check", both)
+    got, _ = _run(data, settings)
+    assert got == want and want != data
+    assert any(not c and hits for c, hits in seen), "no re-check without clearances found a deposit hit"

@@ -546,12 +546,15 @@ class Checker:
 
     def sweep_deposit(self, C, R, lin, ang, cum_lin, cum_ang, seq, store: BeadStore, pending, pending_seq, *,
                       stamped: bool = False, move_of: np.ndarray | None = None,
-                      refine=None) -> tuple[np.ndarray, np.ndarray]:
+                      refine=None, clearances: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Deposit hits (n,) and exact clearances (n,) with sweep margins (lin, ang) per pose and,
         given cum_lin / cum_ang, groups certified first. ``stamped``: the pending beads are in the
         store's field already (else they are overlaid for the call). ``move_of``: as in
         ``sweep_parts`` (the last undecided sample of each move first, the rest of a move only
-        when that one is free); ``refine``: as in ``sweep_parts``."""
+        when that one is free); ``refine``: as in ``sweep_parts``. Without ``clearances`` the
+        hits are the same and the kept beads' clearances not computed (-inf): such a hit with a
+        sweep margin is then tested again without it before refining (with them, a hit whose own
+        clearance is below the clearance is known to collide without that test)."""
         n = len(C)
         hit = np.zeros(n, dtype=bool)
         clearance = np.full(n, np.inf)
@@ -577,9 +580,11 @@ class Checker:
                     sel = sel[~np.isin(move_of[sel], hit_moves)]
                 if len(sel):
                     hit[sel], clearance[sel] = self._exact_deposit(C[sel], R[sel], lin[sel], ang[sel], seq[sel],
-                                                                   store, pending, pending_seq, bead_field)
-                    # A pose whose own clearance is below the clearance collides whatever the sweep does.
-                    doubt = hit[sel] & (lin[sel] + ang[sel] > 0) & (clearance[sel] >= self.clearance_mm)
+                                                                   store, pending, pending_seq, bead_field, clearances)
+                    # A pose whose own clearance is below the clearance collides whatever the sweep does
+                    # (-inf: not computed, ``clearances`` False).
+                    cl = clearance[sel]
+                    doubt = hit[sel] & (lin[sel] + ang[sel] > 0) & ((cl >= self.clearance_mm) | (cl == -np.inf))
                     again = sel[doubt] if refine is not None else sel[:0]
                     if len(again):  # ... and so does one that hits without its sweep margin
                         zero = np.zeros(len(again))

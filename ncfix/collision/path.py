@@ -114,7 +114,7 @@ class PathChecker:
         return P, N, R
 
     def check(self, moves: Moves, store: BeadStore, seq0: int, *, commit: bool = True,
-              prior: np.ndarray | None = None) -> tuple[MoveHits, int]:
+              prior: np.ndarray | None = None, clearances: bool = True) -> tuple[MoveHits, int]:
         """Check every move (end pose and sweep) against the parts and the beads laid before it.
 
         store : the beads of every earlier move; seq0 : the sequence number of the first sample.
@@ -122,6 +122,8 @@ class PathChecker:
         (the beads are then checked as pending, with their sequence numbers).
         prior : (m, 3) beads laid before the first move but not in the store (pending moves
         before these; without ``commit`` only): every sample sees them, none as its own.
+        clearances : False when only the hits are wanted: the deposit hits' clearances (the
+        deepest bead of each, for the report) are then not computed (``deposit_clearance`` -inf).
         Returns the hits and the sequence number after the last sample.
         """
         if prior is not None and len(prior) and commit:
@@ -187,7 +189,8 @@ class PathChecker:
             if stamped:
                 store.field(ck.pitch_mm).add(pend)
             dep_hit, dep_clear = ck.sweep_deposit(C, R, step, turn, cum_lin, cum_ang, seq, store, pend, pend_seq,
-                                                  stamped=stamped, move_of=row_of, refine=refine)
+                                                  stamped=stamped, move_of=row_of, refine=refine,
+                                                  clearances=clearances)
             if stamped:
                 store._add_exact(pend)
         elif commit:

@@ -158,7 +158,7 @@ class Rechecks:
         for s, e in _runs(todo, MERGE_GAP):
             prior = stage.path.bead_points(_take(moves, slice(0, s))) if s else None
             run = _take(moves, slice(s, e))
-            hits, _ = stage.path.check(run, stage.store, 0, commit=False, prior=prior)
+            hits, _ = stage.path.check(run, stage.store, 0, commit=False, prior=prior, clearances=False)
             stage.samples += hits.samples
             self.checked += e - s
             self.bad[s:e], self.margin[s:e] = hits.any, hits.margin
