@@ -88,7 +88,7 @@ def build_stages(options: Options, profile: Profile, report: Report, box=None) -
 
     from ncfix.collision.checker import Checker
     from ncfix.collision.stage import CheckStage
-    from ncfix.collision.head import build_head_model
+    from ncfix.collision.head import cached_head_model
     from ncfix.geometry.mesh import load_head, load_mesh
 
     head = load_head(options.head, options.head_tip, options.head_axis)
@@ -99,7 +99,7 @@ def build_stages(options: Options, profile: Profile, report: Report, box=None) -
         report.warnings.extend(loaded.warnings)
         parts.append((f"part:{Path(path).name}", loaded.mesh, loaded.closed))
         loaded_parts.append(loaded)
-    model = build_head_model(head.mesh, options.pitch)
+    model = cached_head_model(head.mesh, options.pitch)
     report.details.append(model.summary())
     reach_box = None
     if box is not None:

@@ -11,6 +11,16 @@ CORPUS = REPO.parent / "shared" / "corpus"
 NC_SUFFIXES = {".nc", ".ngc", ".txt", ".gcode", ".mpf", ".h"}
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _fresh_cache(tmp_path_factory):
+    """The suite's own cache folder (``ncfix.cache``): empty when the session starts, so no test
+    reads grids or decompositions a developer's earlier runs left in ``~/.cache/ncfix``; tests after
+    the first to build something read it back (the cache's hit path runs in the suite too)."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("NCFIX_CACHE", str(tmp_path_factory.mktemp("ncfix-cache")))
+        yield
+
+
 def corpus_path(*parts: str) -> Path:
     path = CORPUS.joinpath(*parts)
     if not path.exists():

@@ -30,7 +30,7 @@ def test_grids_are_cropped_to_the_heads_reach_with_the_same_decisions(tmp_path, 
     part = tmp_path / "plate.stl"
     trimesh.util.concatenate([plate, block]).export(part)
     shapes = []
-    original = checker_module.build_distance_grid
+    original = checker_module.cached_distance_grid
 
     def recording(mesh, pitch_mm, **kw):
         grid = original(mesh, pitch_mm, **kw)
@@ -38,7 +38,7 @@ def test_grids_are_cropped_to_the_heads_reach_with_the_same_decisions(tmp_path, 
             shapes.append(grid.shape)
         return grid
 
-    monkeypatch.setattr(checker_module, "build_distance_grid", recording)
+    monkeypatch.setattr(checker_module, "cached_distance_grid", recording)
     src = tmp_path / "in.nc"
     src.write_bytes(PROGRAM)
     options = dict(head=str(SAMPLES / "deposition_head.stl"), part=[str(part)], check=True, bead_radius=0.0, pitch=2.0)

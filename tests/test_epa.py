@@ -74,7 +74,7 @@ def test_decomposition_is_computed_once_then_read_from_the_cache(tmp_path):
     cold = decompose(part, cache_dir=tmp_path)
     assert not cold.cached and len(cold.pieces) == 2
     assert all(p.is_convex and p.is_watertight for p in cold.pieces)
-    assert list(tmp_path.iterdir()) == [tmp_path / f"{cold.key}.npz"]
+    assert list(tmp_path.iterdir()) == [tmp_path / f"coacd-{cold.key}.npz"]
     warm = decompose(part, cache_dir=tmp_path)
     assert warm.cached and warm.key == cold.key and warm.seconds < cold.seconds
     for a, b in zip(cold.pieces, warm.pieces):
@@ -101,7 +101,7 @@ def test_cache_key_changes_with_threshold_and_mesh():
 def test_corrupt_cache_file_is_recomputed_and_overwritten(tmp_path):
     part = box([0, 0, 0], [5, 5, 5])
     key = decompose(part, cache_dir=tmp_path).key
-    path = tmp_path / f"{key}.npz"
+    path = tmp_path / f"coacd-{key}.npz"
     for garbage in (b"not a zip file", path.read_bytes()[:100]):
         path.write_bytes(garbage)
         again = decompose(part, cache_dir=tmp_path)
@@ -112,7 +112,7 @@ def test_corrupt_cache_file_is_recomputed_and_overwritten(tmp_path):
 def test_default_cache_folder_comes_from_ncfix_cache(tmp_path, monkeypatch):
     monkeypatch.setenv("NCFIX_CACHE", str(tmp_path / "env"))
     result = decompose(box([0, 0, 0], [5, 5, 5]))
-    assert (tmp_path / "env" / f"{result.key}.npz").is_file()
+    assert (tmp_path / "env" / f"coacd-{result.key}.npz").is_file()
 
 
 # ---- coal's sign convention and the extraction vector ----------------------------------------

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from ncfix import cache
 from ncfix.collision.voxelize import grid_frame, surface_cells, voxelize
 from ncfix.geometry.tolerances import TOLERANCES
 
@@ -31,6 +32,9 @@ from ncfix.geometry.tolerances import TOLERANCES
 EDT_SLACK_MM = 1e-4
 # Empty cells around the body: near it, lookups then stay inside the grid (tighter bounds).
 GRID_PAD_CELLS = 6
+# The code a grid comes from: editing any of these files makes every cached grid a miss.
+GRID_SOURCES = ("ncfix.collision.grid", "ncfix.collision.voxelize", "ncfix.geometry.tolerances")
+_GRID_ARRAYS = ("dist_mm", "origin_mm", "pitch_mm", "body_bounds_mm")
 
 
 @dataclass
@@ -167,3 +171,32 @@ def build_distance_grid(mesh: trimesh.Trimesh, pitch_mm: float, *, closed: bool 
             marked[(slice(None),) * axis + (-1,)] = True
     return DistanceGrid(distance_transform(~marked, pitch_mm), origin, float(pitch_mm), name,
                         np.asarray(mesh.bounds, dtype=np.float64))
+
+
+def cached_distance_grid(mesh: trimesh.Trimesh, pitch_mm: float, *, closed: bool = True, name: str = "",
+                         bounds_mm: np.ndarray | None = None,
+                         cache_dir: str | None = None) -> DistanceGrid:
+    """``build_distance_grid``'s grid, read from the on-disk cache (``ncfix.cache``) when the same
+    mesh was gridded before with the same pitch, closedness, crop, code and libraries."""
+    key = cache.make_key(
+        "grid",
+        np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64),
+        float(pitch_mm), bool(closed), None if bounds_mm is None else np.asarray(bounds_mm, dtype=np.float64),
+        cache.fingerprint(*GRID_SOURCES),
+        {package: cache.version(package) for package in ("numpy", "edt", "scipy")},
+    )
+
+    def to_arrays(grid: DistanceGrid) -> dict[str, np.ndarray]:
+        return {"dist_mm": grid.dist_mm, "origin_mm": grid.origin_mm, "pitch_mm": np.float64(grid.pitch_mm),
+                "body_bounds_mm": grid.body_bounds_mm}
+
+    def from_arrays(a: dict[str, np.ndarray]) -> DistanceGrid | None:
+        dist, origin, bounds = a["dist_mm"], a["origin_mm"], a["body_bounds_mm"]
+        if dist.dtype != np.float32 or dist.ndim != 3 or origin.shape != (3,) or bounds.shape != (2, 3):
+            return None
+        return DistanceGrid(dist, origin.astype(np.float64), float(a["pitch_mm"]), name, bounds.astype(np.float64))
+
+    grid, _ = cache.cached("grid", key, _GRID_ARRAYS,
+                           lambda: build_distance_grid(mesh, pitch_mm, closed=closed, name=name, bounds_mm=bounds_mm),
+                           to_arrays, from_arrays, cache_dir)
+    return grid

@@ -26,10 +26,17 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from ncfix import cache
 from ncfix.collision.voxelize import grid_frame, surface_cells, voxelize
 from ncfix.geometry.tolerances import TOLERANCES
 
 ZONE_NAMES = ("lower", "middle", "upper")
+# The code a head model and a sphere tree come from: editing any of these files makes every
+# cached model and tree a miss.
+HEAD_SOURCES = ("ncfix.collision.head", "ncfix.collision.voxelize", "ncfix.geometry.tolerances")
+_MODEL_ARRAYS = ("centers_mm", "radii_mm", "zone", "interior", "group", "group_centers_mm", "group_radii_mm",
+                 "pitch_mm", "zone_tops_mm", "marked_cells")
+_TREE_ARRAYS = ("center_mm", "radius_mm", "reach_mm", "child_start", "child_count", "level_start")
 
 
 @dataclass(frozen=True)
@@ -322,3 +329,59 @@ def build_sphere_tree(centers_mm: np.ndarray, radii_mm: np.ndarray, leaf_cell_mm
             child_count[base:base + n] = child[last_ball] - child[first_ball] + 1
     reach = np.linalg.norm(center, axis=1) + radius
     return SphereTree(center, radius, reach, child_start, child_count, level_start)
+
+
+def cached_head_model(head: trimesh.Trimesh, pitch_mm: float = 0.5, *, zones: RiskZones = RiskZones(),
+                      max_level: int = 4, target_spheres: int = 24, cache_dir: str | None = None) -> HeadModel:
+    """``build_head_model``'s model, read from the on-disk cache (``ncfix.cache``) when the same
+    head was modelled before with the same parameters, code and libraries."""
+    key = cache.make_key(
+        "head",
+        np.asarray(head.vertices, dtype=np.float64), np.asarray(head.faces, dtype=np.int64), float(pitch_mm),
+        {"tops_fraction": list(zones.tops_fraction), "levels": list(zones.levels), "max_level": int(max_level),
+         "target_spheres": int(target_spheres)},
+        cache.fingerprint(*HEAD_SOURCES), {"numpy": cache.version("numpy")},
+    )
+
+    def to_arrays(model: HeadModel) -> dict[str, np.ndarray]:
+        return {name: np.asarray(getattr(model, name)) for name in _MODEL_ARRAYS}
+
+    def from_arrays(a: dict[str, np.ndarray]) -> HeadModel | None:
+        n = len(a["radii_mm"])
+        if a["centers_mm"].shape != (n, 3) or any(len(a[k]) != n for k in ("zone", "interior", "group")):
+            return None
+        return HeadModel(
+            centers_mm=a["centers_mm"], radii_mm=a["radii_mm"], zone=a["zone"], interior=a["interior"],
+            group=a["group"], group_centers_mm=a["group_centers_mm"], group_radii_mm=a["group_radii_mm"],
+            pitch_mm=float(a["pitch_mm"]), zone_tops_mm=a["zone_tops_mm"], marked_cells=int(a["marked_cells"]),
+        )
+
+    model, _ = cache.cached("head", key, _MODEL_ARRAYS,
+                            lambda: build_head_model(head, pitch_mm, zones=zones, max_level=max_level,
+                                                     target_spheres=target_spheres),
+                            to_arrays, from_arrays, cache_dir)
+    return model
+
+
+def cached_sphere_tree(centers_mm: np.ndarray, radii_mm: np.ndarray, leaf_cell_mm: float,
+                       cache_dir: str | None = None) -> SphereTree:
+    """``build_sphere_tree``'s tree, read from the on-disk cache (``ncfix.cache``) when it was
+    built before from the same balls, leaf cell, code and libraries."""
+    key = cache.make_key(
+        "tree",
+        np.asarray(centers_mm, dtype=np.float64), np.asarray(radii_mm, dtype=np.float64), float(leaf_cell_mm),
+        cache.fingerprint(*HEAD_SOURCES), {"numpy": cache.version("numpy")},
+    )
+
+    def to_arrays(tree: SphereTree) -> dict[str, np.ndarray]:
+        return {name: np.asarray(getattr(tree, name)) for name in _TREE_ARRAYS}
+
+    def from_arrays(a: dict[str, np.ndarray]) -> SphereTree | None:
+        n = len(a["radius_mm"])
+        if a["center_mm"].shape != (n, 3) or a["level_start"][-1] != n:
+            return None
+        return SphereTree(**{name: a[name] for name in _TREE_ARRAYS})
+
+    tree, _ = cache.cached("tree", key, _TREE_ARRAYS, lambda: build_sphere_tree(centers_mm, radii_mm, leaf_cell_mm),
+                           to_arrays, from_arrays, cache_dir)
+    return tree

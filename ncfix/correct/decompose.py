@@ -7,9 +7,9 @@ and may miss slivers where CoACD's manifold preprocessing reshapes the surface. 
 guide for the EPA correction direction, never the judge of a collision.
 
 Decomposition takes seconds (8 s for the 724-face sample mold at 0.05), so the hulls are stored
-under a key made of the mesh's exact arrays, the parameters and the CoACD version. The seed is
-fixed, so the same key always means the same hulls. A cache file that cannot be read is
-recomputed and overwritten.
+in the cache folder (``ncfix.cache``: ``coacd-KEY.npz``) under a key made of the mesh's exact
+arrays, the parameters and the CoACD version. The seed is fixed, so the same key always means the
+same hulls. A cache file that cannot be read is recomputed and overwritten.
 """
 
 from __future__ import annotations
@@ -17,8 +17,6 @@ from __future__ import annotations
 import hashlib
 import importlib.metadata
 import json
-import os
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,8 +24,11 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from ncfix import cache
+
 # CoACD's own seed; fixed so that a decomposition is reproducible bit for bit.
 _SEED = 0
+_ARRAYS = ("vertices", "faces", "vertex_offsets", "face_offsets")
 
 
 @dataclass
@@ -46,12 +47,6 @@ class Decomposition:
     key: str
 
 
-def default_cache_dir() -> Path:
-    """``$NCFIX_CACHE`` when set, else ``~/.cache/ncfix/coacd``."""
-    env = os.environ.get("NCFIX_CACHE")
-    return Path(env) if env else Path.home() / ".cache" / "ncfix" / "coacd"
-
-
 def cache_key(mesh: trimesh.Trimesh, threshold: float) -> str:
     """sha256 of the vertex (float64) and face (int64) arrays, the parameters and CoACD's version."""
     digest = hashlib.sha256()
@@ -68,22 +63,14 @@ def decompose(
     """Convex pieces of ``mesh`` (closed trimesh, workpiece mm), from the cache when present.
 
     threshold : CoACD's concavity threshold (smaller: more, tighter pieces)
-    cache_dir : folder of the .npz files; None means ``default_cache_dir()``. A folder that cannot
-        be written is not an error: the pieces are returned uncached.
+    cache_dir : folder of the .npz files; None means ``ncfix.cache.cache_dir()``. A folder that
+        cannot be written is not an error: the pieces are returned uncached.
     """
     start = time.perf_counter()
-    folder = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     key = cache_key(mesh, threshold)
-    path = folder / f"{key}.npz"
-    pieces = _read(path)
-    cached = pieces is not None
-    if pieces is None:
-        pieces = _run_coacd(mesh, threshold)
-        try:
-            _write(path, pieces)
-        except OSError:
-            pass  # an unwritable cache only costs time on the next run; the pieces are valid
-    return Decomposition(pieces=pieces, seconds=time.perf_counter() - start, cached=cached, key=key)
+    pieces, hit = cache.cached("coacd", key, _ARRAYS, lambda: _run_coacd(mesh, threshold), _to_arrays, _from_arrays,
+                               cache_dir)
+    return Decomposition(pieces=pieces, seconds=time.perf_counter() - start, cached=hit, key=key)
 
 
 def _run_coacd(mesh: trimesh.Trimesh, threshold: float) -> list[trimesh.Trimesh]:
@@ -99,45 +86,28 @@ def _run_coacd(mesh: trimesh.Trimesh, threshold: float) -> list[trimesh.Trimesh]
     return [trimesh.Trimesh(vertices, faces, process=False).convex_hull for vertices, faces in parts]
 
 
-def _write(path: Path, pieces: list[trimesh.Trimesh]) -> None:
-    """One .npz: all vertices and faces stacked, with offsets; written atomically."""
-    vertex_offsets = np.cumsum([0] + [len(p.vertices) for p in pieces]).astype(np.int64)
-    face_offsets = np.cumsum([0] + [len(p.faces) for p in pieces]).astype(np.int64)
-    arrays = {
+def _to_arrays(pieces: list[trimesh.Trimesh]) -> dict[str, np.ndarray]:
+    """All vertices and faces stacked, with offsets."""
+    return {
         "vertices": np.concatenate([p.vertices for p in pieces]).astype(np.float64),
         "faces": np.concatenate([p.faces for p in pieces]).astype(np.int64),
-        "vertex_offsets": vertex_offsets,
-        "face_offsets": face_offsets,
+        "vertex_offsets": np.cumsum([0] + [len(p.vertices) for p in pieces]).astype(np.int64),
+        "face_offsets": np.cumsum([0] + [len(p.faces) for p in pieces]).astype(np.int64),
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temp = tempfile.mkstemp(dir=path.parent, prefix=path.stem, suffix=".tmp")
-    try:
-        with os.fdopen(handle, "wb") as out:
-            np.savez(out, **arrays)
-        os.replace(temp, path)
-    except BaseException:
-        os.unlink(temp)
-        raise
 
 
-def _read(path: Path) -> list[trimesh.Trimesh] | None:
-    """The cached pieces, or None when the file is missing or unreadable (then it is recomputed)."""
-    if not path.is_file():
+def _from_arrays(arrays: dict[str, np.ndarray]) -> list[trimesh.Trimesh] | None:
+    """The pieces, or None when the arrays do not make valid pieces (then they are recomputed)."""
+    vertices = np.asarray(arrays["vertices"], dtype=np.float64)
+    faces = np.asarray(arrays["faces"], dtype=np.int64)
+    vo = np.asarray(arrays["vertex_offsets"], dtype=np.int64)
+    fo = np.asarray(arrays["face_offsets"], dtype=np.int64)
+    if len(vo) < 2 or len(vo) != len(fo) or vo[-1] != len(vertices) or fo[-1] != len(faces):
         return None
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            vertices = np.asarray(data["vertices"], dtype=np.float64)
-            faces = np.asarray(data["faces"], dtype=np.int64)
-            vo = np.asarray(data["vertex_offsets"], dtype=np.int64)
-            fo = np.asarray(data["face_offsets"], dtype=np.int64)
-        pieces = []
-        for i in range(len(vo) - 1):
-            v, f = vertices[vo[i] : vo[i + 1]], faces[fo[i] : fo[i + 1]]
-            if len(v) < 4 or len(f) < 4 or f.min() < 0 or f.max() >= len(v) or not np.isfinite(v).all():
-                return None
-            pieces.append(trimesh.Trimesh(v, f, process=False))
-    except Exception:  # a truncated or foreign file: any failure means "not cached"
-        return None
-    if not pieces or vo[-1] != len(vertices) or fo[-1] != len(faces):
-        return None
+    pieces = []
+    for i in range(len(vo) - 1):
+        v, f = vertices[vo[i] : vo[i + 1]], faces[fo[i] : fo[i + 1]]
+        if len(v) < 4 or len(f) < 4 or f.min() < 0 or f.max() >= len(v) or not np.isfinite(v).all():
+            return None
+        pieces.append(trimesh.Trimesh(v, f, process=False))
     return pieces

@@ -105,7 +105,7 @@ class EpaStrategy:
     options : ``Options`` (max_tilt Θ, max_step θ, resolution) and, read with getattr or from
         ``options.extra``: ``epa_variant`` ("fixed" | "lami", default "lami"), ``epa_step_deg``
         (the walk's step, default resolution / 2), ``epa_threshold`` (CoACD concavity, 0.05),
-        ``epa_cache_dir`` (decomposition cache, default ``$NCFIX_CACHE`` or ~/.cache/ncfix/coacd),
+        ``epa_cache_dir`` (decomposition cache, default ``$NCFIX_CACHE`` or ~/.cache/ncfix),
         ``epa_graph_fallback`` (True: the graph searches the episodes the walk leaves colliding)
     The hull model is built on the first ``solve`` (parts and head of the episode's checker) and
     kept: ``decompose_seconds``, ``cached`` and ``pieces_count`` describe it; ``episodes``,

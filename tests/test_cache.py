@@ -1,0 +1,252 @@
+"""The on-disk cache of the checker's models (ncfix.cache): a hit gives exactly what a build gives,
+every input of a result is in its key (the code that computes it too), and a bad or unwritable
+cache costs time, never a wrong answer."""
+
+from __future__ import annotations
+
+import io
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+import ncfix
+from ncfix import cache
+from ncfix.collision import grid as grid_module
+from ncfix.collision import head as head_module
+from ncfix.collision.grid import build_distance_grid, cached_distance_grid
+from ncfix.collision.head import build_head_model, build_sphere_tree, cached_head_model, cached_sphere_tree
+
+SAMPLES = Path(__file__).resolve().parents[1] / "samples"
+CASES = Path(__file__).parent / "cases" / "fix"
+
+
+def _l_shape() -> trimesh.Trimesh:
+    a = trimesh.creation.box(extents=(20.0, 6.0, 10.0))
+    b = trimesh.creation.box(extents=(6.0, 20.0, 10.0))
+    b.apply_translation((7.0, 7.0, 0.0))
+    return trimesh.util.concatenate([a, b])
+
+
+def _cone_head() -> trimesh.Trimesh:
+    head = trimesh.creation.cone(radius=12.0, height=40.0)
+    head.apply_transform(trimesh.transformations.rotation_matrix(np.pi, [1, 0, 0]))  # apex down at the tip
+    head.apply_translation((0.0, 0.0, 40.0))
+    return head
+
+
+def _no_build(monkeypatch, module, name):
+    def refuse(*args, **kwargs):
+        raise AssertionError(f"{name} ran although its result was cached")
+
+    monkeypatch.setattr(module, name, refuse)
+
+
+def _files(folder: Path, kind: str) -> list[Path]:
+    return sorted(folder.glob(f"{kind}-*.npz"))
+
+
+def _same_grid(a, b) -> None:
+    assert a.dist_mm.dtype == b.dist_mm.dtype == np.float32
+    assert np.array_equal(a.dist_mm, b.dist_mm)
+    assert np.array_equal(a.origin_mm, b.origin_mm) and a.pitch_mm == b.pitch_mm
+    assert np.array_equal(a.body_bounds_mm, b.body_bounds_mm) and a.name == b.name
+
+
+@pytest.mark.parametrize("closed, bounds", [(True, None), (False, None), (True, [[-5, -5, -9], [40, 40, 9]])])
+def test_a_cached_grid_is_the_built_grid_bit_for_bit(tmp_path, monkeypatch, closed, bounds):
+    mesh = _l_shape()
+    bounds = None if bounds is None else np.array(bounds, dtype=np.float64)
+    built = build_distance_grid(mesh, 1.0, closed=closed, name="part:l", bounds_mm=bounds)
+    first = cached_distance_grid(mesh, 1.0, closed=closed, name="part:l", bounds_mm=bounds, cache_dir=tmp_path)
+    assert len(_files(tmp_path, "grid")) == 1
+    _no_build(monkeypatch, grid_module, "build_distance_grid")
+    again = cached_distance_grid(mesh, 1.0, closed=closed, name="part:l", bounds_mm=bounds, cache_dir=tmp_path)
+    _same_grid(first, built)
+    _same_grid(again, built)
+    points = np.random.default_rng(0).uniform(-30, 50, (500, 3))
+    assert np.array_equal(again.lower_bound_np(points), built.lower_bound_np(points))
+
+
+def test_a_hit_takes_the_name_it_is_asked_for(tmp_path):
+    mesh = _l_shape()
+    cached_distance_grid(mesh, 1.0, name="part:first.stl", cache_dir=tmp_path)
+    assert cached_distance_grid(mesh, 1.0, name="part:second.stl", cache_dir=tmp_path).name == "part:second.stl"
+
+
+def test_every_input_of_a_grid_is_in_its_key(tmp_path, monkeypatch):
+    mesh = _l_shape()
+    vertices = np.array(mesh.vertices)
+    vertices[0, 2] = np.nextafter(vertices[0, 2], np.inf)  # one coordinate, one ulp
+    moved = trimesh.Trimesh(vertices, mesh.faces, process=False)
+    variants = [
+        dict(mesh=mesh, pitch_mm=1.0),
+        dict(mesh=moved, pitch_mm=1.0),
+        dict(mesh=mesh, pitch_mm=0.999),
+        dict(mesh=mesh, pitch_mm=1.0, closed=False),
+        dict(mesh=mesh, pitch_mm=1.0, bounds_mm=np.array([[-5.0, -5.0, -9.0], [40.0, 40.0, 9.0]])),
+        dict(mesh=mesh, pitch_mm=1.0, bounds_mm=np.array([[-5.0, -5.0, -9.0], [40.0, 40.0, 8.0]])),
+    ]
+    for variant in variants:
+        cached_distance_grid(cache_dir=tmp_path, **variant)
+    assert len(_files(tmp_path, "grid")) == len(variants)
+    # the same inputs again: no new file
+    cached_distance_grid(mesh, 1.0, cache_dir=tmp_path)
+    assert len(_files(tmp_path, "grid")) == len(variants)
+    # other code computing grids (another fingerprint of its source): another key, a fresh build
+    monkeypatch.setattr(cache, "fingerprint", lambda *modules: "edited")
+    cached_distance_grid(mesh, 1.0, cache_dir=tmp_path)
+    assert len(_files(tmp_path, "grid")) == len(variants) + 1
+
+
+def test_the_fingerprint_follows_the_source_files(tmp_path, monkeypatch):
+    module = tmp_path / "ncfix_cache_probe.py"
+    module.write_text("X = 1\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    cache.fingerprint.cache_clear()
+    before = cache.fingerprint("ncfix_cache_probe")
+    module.write_text("X = 2\n")
+    cache.fingerprint.cache_clear()
+    after = cache.fingerprint("ncfix_cache_probe")
+    cache.fingerprint.cache_clear()
+    sys.modules.pop("ncfix_cache_probe", None)
+    assert before != after
+    assert cache.fingerprint(*grid_module.GRID_SOURCES) != cache.fingerprint(*head_module.HEAD_SOURCES)
+
+
+def test_key_parts_are_typed():
+    assert cache.make_key("k", np.array([1.0, 2.0])) != cache.make_key("k", np.array([1, 2]))
+    assert cache.make_key("k", np.zeros((2, 3))) != cache.make_key("k", np.zeros((3, 2)))
+    assert cache.make_key("k", 1.0) != cache.make_key("k", "1.0")
+    assert cache.make_key("k", None) != cache.make_key("k", np.zeros(0))
+    assert cache.make_key("grid", 1.0) != cache.make_key("head", 1.0)
+
+
+def test_a_cached_head_model_and_its_trees_are_the_built_ones(tmp_path, monkeypatch):
+    head = _cone_head()
+    built = build_head_model(head, 1.0)
+    first = cached_head_model(head, 1.0, cache_dir=tmp_path)
+    tree_built = build_sphere_tree(built.centers_mm, built.radii_mm, 1.0)
+    cached_sphere_tree(built.centers_mm, built.radii_mm, 1.0, cache_dir=tmp_path)
+    _no_build(monkeypatch, head_module, "build_head_model")
+    _no_build(monkeypatch, head_module, "build_sphere_tree")
+    model = cached_head_model(head, 1.0, cache_dir=tmp_path)
+    tree = cached_sphere_tree(built.centers_mm, built.radii_mm, 1.0, cache_dir=tmp_path)
+    for got in (first, model):
+        for name in ("centers_mm", "radii_mm", "zone", "interior", "group", "group_centers_mm",
+                     "group_radii_mm", "zone_tops_mm"):
+            assert getattr(got, name).dtype == getattr(built, name).dtype, name
+            assert np.array_equal(getattr(got, name), getattr(built, name)), name
+        assert (got.pitch_mm, got.marked_cells) == (built.pitch_mm, built.marked_cells)
+        assert got.summary() == built.summary()
+    for name in ("center_mm", "radius_mm", "reach_mm", "child_start", "child_count", "level_start"):
+        assert np.array_equal(getattr(tree, name), getattr(tree_built, name)), name
+    # the model's parameters are in its key
+    monkeypatch.undo()
+    cached_head_model(head, 1.0, target_spheres=12, cache_dir=tmp_path)
+    assert len(_files(tmp_path, "head")) == 2
+
+
+@pytest.mark.parametrize("garbage", [b"not a zip file", "truncated", "other arrays"])
+def test_a_bad_cache_file_is_rebuilt_and_overwritten(tmp_path, garbage):
+    mesh = _l_shape()
+    built = cached_distance_grid(mesh, 1.0, cache_dir=tmp_path)
+    (path,) = _files(tmp_path, "grid")
+    if garbage == "truncated":
+        path.write_bytes(path.read_bytes()[:200])
+    elif garbage == "other arrays":  # a readable file of the wrong shape (a foreign writer)
+        np.savez(path, dist_mm=np.zeros((4, 4), np.float32), origin_mm=np.zeros(3), pitch_mm=np.float64(1.0),
+                 body_bounds_mm=np.zeros((2, 3)))
+    else:
+        path.write_bytes(garbage)
+    again = cached_distance_grid(mesh, 1.0, cache_dir=tmp_path)
+    _same_grid(again, built)
+    assert cache.read_arrays(path, ["dist_mm"])["dist_mm"].shape == built.dist_mm.shape  # overwritten
+
+
+def test_an_unwritable_cache_folder_only_costs_time(tmp_path):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    mesh = _l_shape()
+    grid = cached_distance_grid(mesh, 1.0, cache_dir=blocker / "cache")
+    _same_grid(grid, build_distance_grid(mesh, 1.0))
+
+
+def test_the_default_folder_comes_from_ncfix_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("NCFIX_CACHE", str(tmp_path / "env"))
+    assert cache.cache_dir() == tmp_path / "env"
+    cached_distance_grid(_l_shape(), 1.0)
+    assert len(_files(tmp_path / "env", "grid")) == 1
+    monkeypatch.delenv("NCFIX_CACHE")
+    assert cache.cache_dir() == Path.home() / ".cache" / "ncfix"
+
+
+def _fix_ijk(folder: Path, monkeypatch) -> tuple[bytes, list]:
+    sys.path.insert(0, str(CASES))
+    import make_cases
+    from ncfix.profiles import load_profile
+
+    monkeypatch.setenv("NCFIX_CACHE", str(folder))
+    out = io.BytesIO()
+    report = ncfix.process(CASES / "fix_ijk.nc", out, **make_cases.settings(load_profile("ijk")))
+    return out.getvalue(), report.collisions
+
+
+def _check_wall(folder: Path, monkeypatch) -> list:
+    monkeypatch.setenv("NCFIX_CACHE", str(folder))
+    report = ncfix.process(SAMPLES / "deposit_wall.nc", io.BytesIO(), head=str(SAMPLES / "deposition_head.stl"),
+                           standoff=6.0, bead_radius=1.0, check=True)
+    return report.collisions
+
+
+def test_a_fix_from_a_warm_cache_is_the_fix_from_a_cold_one(tmp_path, monkeypatch):
+    folder = tmp_path / "cache"
+    cold = _fix_ijk(folder, monkeypatch)
+    assert {p.name.split("-")[0] for p in folder.iterdir()} == {"grid", "head", "tree"}
+    _no_build(monkeypatch, grid_module, "build_distance_grid")
+    _no_build(monkeypatch, head_module, "build_head_model")
+    _no_build(monkeypatch, head_module, "build_sphere_tree")
+    warm = _fix_ijk(folder, monkeypatch)
+    assert warm == cold
+    assert cold[0] == (CASES / "fix_ijk.expected.nc").read_bytes()
+
+
+def test_a_deposit_check_from_a_warm_cache_is_the_check_from_a_cold_one(tmp_path, monkeypatch):
+    folder = tmp_path / "cache"
+    cold = _check_wall(folder, monkeypatch)
+    assert len(_files(folder, "grid")) == 1  # the clipped head's grid (no part)
+    _no_build(monkeypatch, grid_module, "build_distance_grid")
+    _no_build(monkeypatch, head_module, "build_sphere_tree")
+    assert _check_wall(folder, monkeypatch) == cold
+    assert [c["line"] for c in cold] == list(range(497, 521))
+
+
+def test_the_folder_is_kept_under_its_size_least_recently_used_first(tmp_path, monkeypatch):
+    import os
+
+    def box_at(x):  # grids of the same shape: files of the same size
+        mesh = trimesh.creation.box(extents=(10.0, 10.0, 10.0))
+        mesh.apply_translation((x, 0.0, 0.0))
+        return mesh
+
+    files = []
+    for i in range(4):
+        before = set(_files(tmp_path, "grid"))
+        cached_distance_grid(box_at(100.0 * i), 1.0, cache_dir=tmp_path)
+        (new,) = set(_files(tmp_path, "grid")) - before
+        os.utime(new, (1000.0 * (i + 1),) * 2)  # written in this order, far apart in time
+        files.append(new)
+    assert len({f.stat().st_size for f in files}) == 1
+    cached_distance_grid(box_at(0.0), 1.0, cache_dir=tmp_path)  # a hit: the first grid is the newest now
+    assert files[0].stat().st_mtime > 10_000
+    stale = tmp_path / "grid-x.tmp"
+    stale.write_bytes(b"left by a killed run")
+    os.utime(stale, (1.0, 1.0))
+    monkeypatch.setattr(cache, "MAX_BYTES", 4 * files[0].stat().st_size)  # room for four grids
+    cached_distance_grid(box_at(400.0), 1.0, cache_dir=tmp_path)
+    left = set(_files(tmp_path, "grid"))
+    assert len(left) == 4 and files[1] not in left  # the least recently used went
+    assert {files[0], files[2], files[3]} <= left
+    assert not stale.exists()
