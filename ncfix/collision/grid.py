@@ -14,6 +14,17 @@ of it and the distance from ``x`` to the body's bounding box (which holds all of
 Every approximation (cell size, nearest-cell lookup, float32 EDT values) is inside that bound,
 so a ball of radius r at x is certainly free when ``lower_bound(x) > r + clearance``; anything
 else is *undecided* and goes to the exact test (never straight to "collides").
+
+Near the body, where the exact tests are decided, ``D(c)`` can be up to ``2h`` below the true
+distance ``d(c)`` (``D`` measures to marked centres, each up to ``h`` from the body). So the cells
+within ``EXACT_BAND_MM`` whose centre is known to lie outside the body store
+``max(D(c), d(c) + h)`` instead, with ``d(c)`` the exact distance to the mesh's surface
+(``near.surface_distances``): the lookup and its proof stay as above, since
+``d(c) + h - |x - c| - h <= d(x)``, and the bound is up to ``2h`` tighter there. A centre is known
+outside when it is unmarked (farther than ``h`` from the surface and not inside), or marked only
+for the surface with the voxelizer calling it outside and farther from the surface than the
+voxelizer's ray jitter (so the jittered ray saw the same side). An open mesh has no inside: its
+surface is the body.
 """
 
 from __future__ import annotations
@@ -32,8 +43,13 @@ from ncfix.geometry.tolerances import TOLERANCES
 EDT_SLACK_MM = 1e-4
 # Empty cells around the body: near it, lookups then stay inside the grid (tighter bounds).
 GRID_PAD_CELLS = 6
+# Cells outside the body with D below this (mm) store their exact distance (module doc).
+EXACT_BAND_MM = 4.0
+# A surface cell's centre nearer the surface than this (mm) keeps D: the voxelizer's jittered ray
+# (TOLERANCES.ray_jitter_fraction of a cell) may have passed on the other side of the surface.
+JITTER_SAFE_MM = 1e-3
 # The code a grid comes from: editing any of these files makes every cached grid a miss.
-GRID_SOURCES = ("ncfix.collision.grid", "ncfix.collision.voxelize", "ncfix.geometry.tolerances")
+GRID_SOURCES = ("ncfix.collision.grid", "ncfix.collision.voxelize", "ncfix.geometry.near", "ncfix.geometry.tolerances")
 _GRID_ARRAYS = ("dist_mm", "origin_mm", "pitch_mm", "body_bounds_mm")
 
 
@@ -118,8 +134,9 @@ class DistanceGrid:
 
 
 def marked_cells(mesh: trimesh.Trimesh, closed: bool, pitch_mm: float, origin_mm: np.ndarray,
-                 shape: tuple[int, int, int]) -> np.ndarray:
-    """Cells (nx, ny, nz) bool whose closed cube may hold a point of the body (see module doc).
+                 shape: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Cells (nx, ny, nz) bool whose closed cube may hold a point of the body (see module doc),
+    and the cells whose centre the voxelizer finds inside (all False for an open mesh).
 
     An open (surface-only) mesh marks only the cells its triangles may pass through.
     """
@@ -127,9 +144,32 @@ def marked_cells(mesh: trimesh.Trimesh, closed: bool, pitch_mm: float, origin_mm
     f = np.asarray(mesh.faces, dtype=np.int64)
     half_diagonal = 0.5 * np.sqrt(3.0) * pitch_mm
     marked = surface_cells(v, f, origin_mm, shape, pitch_mm, half_diagonal + TOLERANCES.cover_slack_mm)
-    if closed:
-        marked |= voxelize(v, f, pitch_mm, origin_mm=origin_mm, shape=shape).occupancy
-    return marked
+    if not closed:
+        return marked, np.zeros_like(marked)
+    inside = voxelize(v, f, pitch_mm, origin_mm=origin_mm, shape=shape).occupancy
+    return marked | inside, inside
+
+
+def tighten_near_body(dist: np.ndarray, inside: np.ndarray, mesh: trimesh.Trimesh, origin_mm: np.ndarray,
+                      pitch_mm: float) -> int:
+    """Raises ``dist`` (the EDT, float32, in place) to ``d(c) + h`` at the cells within
+    ``EXACT_BAND_MM`` whose centre is known to lie outside the body (module doc); returns how many
+    cells it computed."""
+    from ncfix.geometry.near import surface_distances
+
+    h = 0.5 * np.sqrt(3.0) * pitch_mm
+    cells = np.flatnonzero((dist.ravel() <= EXACT_BAND_MM) & ~inside.ravel())
+    if not len(cells):
+        return 0
+    centres = np.asarray(origin_mm, dtype=np.float64) + np.stack(np.unravel_index(cells, dist.shape), axis=1) * pitch_mm
+    exact = surface_distances(np.asarray(mesh.triangles, dtype=np.float64), centres, EXACT_BAND_MM + 2.0 * h)
+    # A marked cell (D = 0) that is not inside is marked for the surface: known outside only
+    # beyond the ray jitter. An unmarked one (D > 0) is farther than h from the surface.
+    known = (dist.ravel()[cells] > 0) | (exact > JITTER_SAFE_MM)
+    cells, raised = cells[known], (exact[known] + h).astype(np.float32)
+    flat = dist.reshape(-1)
+    flat[cells] = np.maximum(flat[cells], raised)
+    return int(len(exact))
 
 
 def distance_transform(free: np.ndarray, pitch_mm: float) -> np.ndarray:
@@ -162,15 +202,16 @@ def build_distance_grid(mesh: trimesh.Trimesh, pitch_mm: float, *, closed: bool 
         if (lo <= hi).all() and ((lo > bounds[0]) | (hi < bounds[1])).any():
             bounds, cropped = np.array([lo, hi]), True
     origin, shape = grid_frame(bounds, pitch_mm, pad_cells=GRID_PAD_CELLS)
-    marked = marked_cells(mesh, closed, pitch_mm, origin, shape)
+    marked, inside = marked_cells(mesh, closed, pitch_mm, origin, shape)
     if cropped:
         # The body goes on beyond the grid: the outer layer stands for it (any path from inside
         # the grid to that material crosses the layer), so the bound stays a lower bound.
         for axis in range(3):
             marked[(slice(None),) * axis + (0,)] = True
             marked[(slice(None),) * axis + (-1,)] = True
-    return DistanceGrid(distance_transform(~marked, pitch_mm), origin, float(pitch_mm), name,
-                        np.asarray(mesh.bounds, dtype=np.float64))
+    dist = distance_transform(~marked, pitch_mm)
+    tighten_near_body(dist, inside, mesh, origin, pitch_mm)
+    return DistanceGrid(dist, origin, float(pitch_mm), name, np.asarray(mesh.bounds, dtype=np.float64))
 
 
 def cached_distance_grid(mesh: trimesh.Trimesh, pitch_mm: float, *, closed: bool = True, name: str = "",

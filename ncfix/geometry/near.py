@@ -226,6 +226,13 @@ def _nearest_d2(px, py, pz, stop2, tris, lo, cell, dims, cap, start, listed):  #
     return best
 
 
+def _distances_kernel(points, out, tris, lo, cell, dims, cap, start, listed):  # pragma: no cover - compiled
+    """out[i] = the exact distance from points[i] to the surface."""
+    for i in range(points.shape[0]):
+        out[i] = np.sqrt(_nearest_d2(points[i, 0], points[i, 1], points[i, 2], -1.0, tris, lo, cell, dims, cap,
+                                     start, listed))
+
+
 def _side(px, py, pz, d, tris, slo, spitch, inside):  # pragma: no cover - compiled
     """-1 inside, 1 outside, for a point at distance d from the surface: the sign grid where it
     is certain, else the winding number."""
@@ -280,11 +287,52 @@ _sign_certain = _jit(_sign_certain)
 _side = _jit(_side)
 _touch = _jit(_touch)
 _nearest_d2 = _jit(_nearest_d2)
+_distances_kernel = _jit(_distances_kernel)
 _signed_distance = _jit(_signed_distance)
 depth_bound = _jit(depth_bound)
 _signed_distance_below = _jit(_signed_distance_below)
 _count_kernel = _jit(_count_kernel)
 _first_touch_kernel = _jit(_first_touch_kernel)
+
+
+def _cell_lists(tris: np.ndarray, cap_mm: float, cell_mm: float):
+    """Cells of ``cell_mm`` over the triangles' box padded by ``cap_mm`` + a cell, each listing every
+    triangle within ``cap_mm`` of any of its points -> (lo, dims, start, listed) (module doc)."""
+    pad = cap_mm + cell_mm
+    lo = tris.reshape(-1, 3).min(axis=0) - pad
+    hi = tris.reshape(-1, 3).max(axis=0) + pad
+    dims = np.maximum(np.ceil((hi - lo) / cell_mm).astype(np.int64), 1)
+    reach = cap_mm + 0.5 * np.sqrt(3.0) * cell_mm + 1e-9
+    counts = np.zeros(int(np.prod(dims)), dtype=np.int64)
+    _count_kernel(tris, lo, cell_mm, dims, reach, counts)
+    start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    listed = np.empty(int(start[-1]), dtype=np.int64)
+    counts[:] = 0
+    _cells_kernel(tris, lo, cell_mm, dims, reach, counts, start, listed, True)
+    return lo, dims, start, listed
+
+
+def surface_distances(triangles: np.ndarray, points: np.ndarray, cap_mm: float, cell_mm: float = 2.0) -> np.ndarray:
+    """The exact distance (mm, float64) from each point (n, 3) to the nearest of the triangles
+    (m, 3, 3). A point within ``cap_mm`` of them reads one cell's list, a farther one every
+    triangle (so ``cap_mm`` only sets the cost). Runs of points go to the machine's cores."""
+    from ncfix.collision.split import map_runs
+
+    tris = np.ascontiguousarray(triangles, dtype=np.float64)
+    pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    out = np.empty(len(pts), dtype=np.float64)
+    if not len(pts):
+        return out
+    if not len(tris):
+        out[:] = np.inf
+        return out
+    lo, dims, start, listed = _cell_lists(tris, float(cap_mm), float(cell_mm))
+
+    def run(a: int, b: int) -> None:
+        _distances_kernel(pts[a:b], out[a:b], tris, lo, float(cell_mm), dims, float(cap_mm), start, listed)
+
+    map_runs(run, len(pts))
+    return out
 
 
 class NearSurface:
@@ -299,16 +347,7 @@ class NearSurface:
         self.triangles = np.ascontiguousarray(triangles, dtype=np.float64)
         self.cap_mm = float(cap_mm)
         self.cell_mm = float(cell_mm)
-        pad = self.cap_mm + self.cell_mm
-        self.lo = self.triangles.reshape(-1, 3).min(axis=0) - pad
-        hi = self.triangles.reshape(-1, 3).max(axis=0) + pad
-        self.dims = np.maximum(np.ceil((hi - self.lo) / self.cell_mm).astype(np.int64), 1)
-        reach = self.cap_mm + 0.5 * np.sqrt(3.0) * self.cell_mm + 1e-9
-        cells = int(np.prod(self.dims))
-        counts = np.zeros(cells, dtype=np.int64)
-        _count_kernel(self.triangles, self.lo, self.cell_mm, self.dims, reach, counts)
-        self.start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        self.listed = np.empty(int(self.start[-1]), dtype=np.int64)
+        self.lo, self.dims, self.start, self.listed = _cell_lists(self.triangles, self.cap_mm, self.cell_mm)
         # The sign grid: cell-centre occupancy (the column-parity voxelizer) at SIGN_PITCH_MM.
         from ncfix.collision.voxelize import voxelize
 
@@ -316,8 +355,6 @@ class NearSurface:
         grid = voxelize(vertices, faces.reshape(-1, 3), SIGN_PITCH_MM, pad_cells=2)
         self.inside = np.ascontiguousarray(grid.occupancy)
         self.sign_lo, self.sign_pitch = np.asarray(grid.origin_mm, dtype=np.float64), float(SIGN_PITCH_MM)
-        counts[:] = 0
-        _cells_kernel(self.triangles, self.lo, self.cell_mm, self.dims, reach, counts, self.start, self.listed, True)
         self._depth: np.ndarray | None = None
 
     @property

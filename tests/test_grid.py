@@ -1,0 +1,99 @@
+"""The part grids near the body: cells known to lie outside store their exact distance (grid.py's
+module doc), so the bound stays a lower bound everywhere and is at most 2h off in the band."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from ncfix.collision import grid as grid_module
+from ncfix.collision.grid import EXACT_BAND_MM, build_distance_grid
+from ncfix.geometry.distance import point_mesh_distance
+from ncfix.geometry.mesh import load_mesh
+from ncfix.geometry.near import surface_distances
+
+MOLD = Path(__file__).resolve().parents[1] / "samples" / "recreated_mold.stl"
+PITCH = 0.5
+
+
+@pytest.fixture(scope="module")
+def mold() -> trimesh.Trimesh:
+    return load_mesh(MOLD, "part").mesh
+
+
+def _sheet() -> trimesh.Trimesh:
+    """An open, wavy surface (no inside): its surface is the body."""
+    x, y = np.meshgrid(np.linspace(-30, 30, 13), np.linspace(-20, 20, 9), indexing="ij")
+    z = 3.0 * np.sin(x / 7.0) * np.cos(y / 9.0)
+    vertices = np.stack([x, y, z], axis=-1).reshape(-1, 3)
+    faces = []
+    for i in range(12):
+        for j in range(8):
+            a, b, c, d = i * 9 + j, (i + 1) * 9 + j, (i + 1) * 9 + j + 1, i * 9 + j + 1
+            faces += [(a, b, c), (a, c, d)]
+    return trimesh.Trimesh(vertices, np.array(faces), process=False)
+
+
+def _near_surface_points(mesh: trimesh.Trimesh, n: int, spread_mm: float, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    on, _ = trimesh.sample.sample_surface(mesh, n, seed=seed)
+    return on + rng.normal(size=(n, 3)) * spread_mm
+
+
+def _true_distance(mesh: trimesh.Trimesh, points: np.ndarray, closed: bool) -> np.ndarray:
+    true = point_mesh_distance(points, np.asarray(mesh.triangles, dtype=np.float64))
+    if closed:
+        true[mesh.contains(points)] = 0.0
+    return true
+
+
+def test_surface_distances_are_exact(mold):
+    rng = np.random.default_rng(3)
+    lo, hi = mold.bounds
+    points = np.concatenate([_near_surface_points(mold, 3000, 2.0, 3),
+                             lo - 50 + rng.random((300, 3)) * (hi - lo + 100)])  # far ones read every triangle
+    tris = np.asarray(mold.triangles, dtype=np.float64)
+    got = surface_distances(tris, points, cap_mm=3.0)
+    assert np.allclose(got, point_mesh_distance(points, tris), rtol=0, atol=1e-9)
+    assert len(surface_distances(tris, points[:0], cap_mm=3.0)) == 0
+    assert np.isinf(surface_distances(tris[:0], points[:4], cap_mm=3.0)).all()
+
+
+@pytest.mark.parametrize("case", ["closed", "open", "cropped"])
+def test_the_bound_stays_below_the_distance_and_is_within_2h_in_the_band(mold, case):
+    if case == "open":
+        mesh, closed, bounds = _sheet(), False, None
+    else:
+        mesh, closed = mold, True
+        lo, hi = mold.bounds
+        bounds = np.array([lo + 0.15 * (hi - lo), hi - 0.15 * (hi - lo)]) if case == "cropped" else None
+    grid = build_distance_grid(mesh, PITCH, closed=closed, bounds_mm=bounds)
+    points = np.concatenate([_near_surface_points(mesh, 4000, 1.5, 5), _near_surface_points(mesh, 2000, 4.0, 6)])
+    if bounds is not None:
+        points = points[((points > bounds[0]) & (points < bounds[1])).all(axis=1)]
+    true = _true_distance(mesh, points, closed)
+    bound = grid.lower_bound_np(points)
+    assert (bound <= true + 1e-9).all()
+    # A point 2h .. band - 2h outside: its nearest cell centre is outside, farther than h from the
+    # surface and within the band, so the bound is off by at most twice the lookup offset.
+    h = 0.5 * np.sqrt(3.0) * PITCH
+    band = (true > 2 * h + 1e-3) & (true < EXACT_BAND_MM - 2 * h)
+    assert band.sum() > 200
+    assert (true[band] - bound[band]).max() <= 2 * grid.margin_mm
+
+
+def test_without_the_exact_band_the_bound_is_looser(mold, monkeypatch):
+    """The band is what makes the 2h figure above true (the EDT alone is off by up to 4h)."""
+    points = _near_surface_points(mold, 3000, 1.5, 7)
+    true = _true_distance(mold, points, True)
+    tight = build_distance_grid(mold, PITCH).lower_bound_np(points)
+    monkeypatch.setattr(grid_module, "EXACT_BAND_MM", -1.0)
+    monkeypatch.setattr(grid_module, "JITTER_SAFE_MM", np.inf)
+    loose = build_distance_grid(mold, PITCH).lower_bound_np(points)
+    assert (loose <= tight).all() and (loose < tight - 0.3).sum() > 500
+    h = 0.5 * np.sqrt(3.0) * PITCH
+    band = (true > 2 * h + 1e-3) & (true < EXACT_BAND_MM - 2 * h)
+    assert (true[band] - loose[band]).max() > 2 * (0.5 * np.sqrt(3.0) * PITCH) + 0.1
