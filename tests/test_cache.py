@@ -18,6 +18,7 @@ from ncfix.collision import grid as grid_module
 from ncfix.collision import head as head_module
 from ncfix.collision.grid import build_distance_grid, cached_distance_grid
 from ncfix.collision.head import build_head_model, build_sphere_tree, cached_head_model, cached_sphere_tree
+from ncfix.geometry.near import NearSurface, cached_near_surface
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 CASES = Path(__file__).parent / "cases" / "fix"
@@ -204,7 +205,7 @@ def _check_wall(folder: Path, monkeypatch) -> list:
 def test_a_fix_from_a_warm_cache_is_the_fix_from_a_cold_one(tmp_path, monkeypatch):
     folder = tmp_path / "cache"
     cold = _fix_ijk(folder, monkeypatch)
-    assert {p.name.split("-")[0] for p in folder.iterdir()} == {"grid", "head", "tree"}
+    assert {p.name.split("-")[0] for p in folder.iterdir()} == {"grid", "head", "tree"}  # no deposit: no near
     _no_build(monkeypatch, grid_module, "build_distance_grid")
     _no_build(monkeypatch, head_module, "build_head_model")
     _no_build(monkeypatch, head_module, "build_sphere_tree")
@@ -217,8 +218,10 @@ def test_a_deposit_check_from_a_warm_cache_is_the_check_from_a_cold_one(tmp_path
     folder = tmp_path / "cache"
     cold = _check_wall(folder, monkeypatch)
     assert len(_files(folder, "grid")) == 1  # the clipped head's grid (no part)
+    assert len(_files(folder, "near")) == 1  # the clipped head's cell lists and sign grid
     _no_build(monkeypatch, grid_module, "build_distance_grid")
     _no_build(monkeypatch, head_module, "build_sphere_tree")
+    _no_build(monkeypatch, NearSurface, "__init__")
     assert _check_wall(folder, monkeypatch) == cold
     assert [c["line"] for c in cold] == list(range(497, 521))
 
@@ -250,3 +253,22 @@ def test_the_folder_is_kept_under_its_size_least_recently_used_first(tmp_path, m
     assert len(left) == 4 and files[1] not in left  # the least recently used went
     assert {files[0], files[2], files[3]} <= left
     assert not stale.exists()
+
+
+def test_a_cached_near_surface_answers_as_the_built_one(tmp_path, monkeypatch):
+    head = _cone_head()
+    tris = np.asarray(head.triangles, dtype=np.float64)
+    built = NearSurface(tris, 2.0)
+    cached_near_surface(tris, 2.0, cache_dir=tmp_path)
+    _no_build(monkeypatch, NearSurface, "__init__")
+    near = cached_near_surface(tris, 2.0, cache_dir=tmp_path)
+    for name in ("triangles", "lo", "dims", "start", "listed", "inside", "sign_lo"):
+        assert np.array_equal(getattr(near, name), getattr(built, name)), name
+    assert np.array_equal(near.depth, built.depth)
+    rng = np.random.default_rng(2)
+    pts = rng.uniform(-15, 45, (2000, 3))
+    radii = rng.uniform(0.1, 2.0, len(pts))
+    group = np.arange(len(pts)) % 50
+    for check in (np.ones(len(pts), bool), np.zeros(len(pts), bool)):
+        a, b = near.first_touch(pts, radii, check, group, 50), built.first_touch(pts, radii, check, group, 50)
+        assert np.array_equal(a[0], b[0]) and a[1] == b[1]

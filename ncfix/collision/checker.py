@@ -51,7 +51,7 @@ from ncfix.collision.split import thread_count
 from ncfix.collision.grid import DistanceGrid, cached_distance_grid
 from ncfix.collision.head import HeadModel, SphereTree, cached_sphere_tree
 from ncfix.geometry.cells import group_cells
-from ncfix.geometry.near import NearSurface
+from ncfix.geometry.near import cached_near_surface
 from ncfix.reference import ExactReference
 
 # Octree cell (mm) of the tree's lowest inner level: a few balls each.
@@ -218,8 +218,9 @@ class Checker:
             self._head_triangles_clipped = np.asarray(clipped.triangles, dtype=np.float64)
             # Exact bead tests: a bead's ball (radius + clearance + sweep margin, <= a pitch) against
             # the clipped head's triangles near it.
-            self.near_head = NearSurface(self._head_triangles_clipped,
-                                         self.bead_radius_mm + self.clearance_mm + 1.5 * self.pitch_mm)
+            self.near_head = cached_near_surface(self._head_triangles_clipped,
+                                                 self.bead_radius_mm + self.clearance_mm + 1.5 * self.pitch_mm,
+                                                 cache_dir=cache_dir)
 
     # -- the sphere-tree test ----------------------------------------------------------------
     def _tensor(self, a, dtype=None):

@@ -23,6 +23,10 @@ import numpy as np
 SIGN_PITCH_MM = 0.5
 # Covers the voxelizer's ray jitter and float rounding (mm).
 SIGN_SLACK_MM = 1e-4
+# The code a NearSurface comes from: editing any of these files makes every cached one a miss.
+NEAR_SOURCES = ("ncfix.geometry.near", "ncfix.collision.voxelize", "ncfix.collision.grid", "ncfix.geometry.tolerances")
+_NEAR_ARRAYS = ("triangles", "cap_mm", "cell_mm", "lo", "dims", "start", "listed", "inside", "sign_lo", "sign_pitch",
+                "depth")
 
 
 def _tri_closest(px, py, pz, t):  # pragma: no cover - compiled
@@ -389,3 +393,39 @@ class NearSurface:
             np.ascontiguousarray(group, dtype=np.int64), int(n_groups), self.triangles, self.lo, self.cell_mm,
             self.dims, self.cap_mm, self.start, self.listed, self.sign_lo, self.sign_pitch, self.inside)
         return first, int(tested)
+
+
+def cached_near_surface(triangles: np.ndarray, cap_mm: float, cell_mm: float = 2.0,
+                        cache_dir: str | None = None) -> NearSurface:
+    """``NearSurface(triangles, cap_mm, cell_mm)`` with its depth bound made, read from the on-disk
+    cache (``ncfix.cache``) when it was built before from the same triangles, sizes and code."""
+    from ncfix import cache
+
+    tris = np.ascontiguousarray(triangles, dtype=np.float64)
+    key = cache.make_key("near", tris, float(cap_mm), float(cell_mm), cache.fingerprint(*NEAR_SOURCES),
+                         {package: cache.version(package) for package in ("numpy", "edt", "scipy")})
+
+    def build() -> NearSurface:
+        near = NearSurface(tris, cap_mm, cell_mm)
+        near.depth  # noqa: B018 - made now, so that it is kept with the rest
+        return near
+
+    def to_arrays(near: NearSurface) -> dict[str, np.ndarray]:
+        return {"triangles": near.triangles, "cap_mm": np.float64(near.cap_mm), "cell_mm": np.float64(near.cell_mm),
+                "lo": near.lo, "dims": near.dims, "start": near.start, "listed": near.listed, "inside": near.inside,
+                "sign_lo": near.sign_lo, "sign_pitch": np.float64(near.sign_pitch), "depth": near.depth}
+
+    def from_arrays(a: dict[str, np.ndarray]) -> NearSurface | None:
+        dims, start = a["dims"], a["start"]
+        if dims.shape != (3,) or len(start) != int(np.prod(dims)) + 1 or start[-1] != len(a["listed"]) \
+                or a["depth"].shape != a["inside"].shape or a["triangles"].shape != tris.shape:
+            return None
+        near = NearSurface.__new__(NearSurface)
+        near.triangles, near.cap_mm, near.cell_mm = a["triangles"], float(a["cap_mm"]), float(a["cell_mm"])
+        near.lo, near.dims, near.start, near.listed = a["lo"], dims, start, a["listed"]
+        near.inside, near.sign_lo, near.sign_pitch = a["inside"], a["sign_lo"], float(a["sign_pitch"])
+        near._depth = a["depth"]
+        return near
+
+    near, _ = cache.cached("near", key, _NEAR_ARRAYS, build, to_arrays, from_arrays, cache_dir)
+    return near
