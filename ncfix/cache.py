@@ -31,6 +31,7 @@ import importlib.metadata
 import json
 import os
 import tempfile
+import time
 from pathlib import Path
 from typing import Callable, Iterable, TypeVar
 
@@ -87,6 +88,11 @@ def make_key(kind: str, *parts: object) -> str:
     return digest.hexdigest()
 
 
+def fields(obj: object, names: Iterable[str]) -> dict[str, np.ndarray]:
+    """The named attributes of ``obj`` as arrays (a ``to_arrays`` for ``cached``)."""
+    return {name: np.asarray(getattr(obj, name)) for name in names}
+
+
 def path_for(kind: str, key: str, folder: str | os.PathLike[str] | None = None) -> Path:
     return (Path(folder) if folder is not None else cache_dir()) / f"{kind}-{key}.npz"
 
@@ -97,7 +103,7 @@ def read_arrays(path: Path, names: Iterable[str]) -> dict[str, np.ndarray] | Non
         return None
     try:
         with np.load(path, allow_pickle=False) as data:
-            return {name: np.array(data[name]) for name in names}
+            return {name: data[name] for name in names}  # each read into an array of its own
     except Exception:  # a truncated or foreign file: any failure means "not cached"
         return None
 
@@ -145,8 +151,6 @@ def prune(folder: Path, max_bytes: int, keep: Path | None = None) -> None:
     """Deletes the least recently used ``.npz`` files of ``folder`` (never ``keep``) until the rest
     take at most ``max_bytes``, and temporary files older than ``STALE_TEMP_S``. Files another run
     deletes meanwhile are skipped."""
-    import time
-
     entries = []
     now = time.time()
     for path in folder.iterdir():

@@ -174,14 +174,14 @@ class Checker:
 
     head : closed trimesh in the head frame (tip at the origin, axis +Z)
     parts : (name, mesh, closed) in workpiece mm; names as the report shows them
-    cache_dir : where the grids and sphere trees are kept between runs (``ncfix.cache``; None:
-        ``$NCFIX_CACHE`` or ``~/.cache/ncfix``)
+
+    The grids, sphere trees and the clipped head's NearSurface come from the on-disk cache
+    (``ncfix.cache``) when they were built before.
     """
 
     def __init__(self, head: trimesh.Trimesh, model: HeadModel, parts: list[tuple[str, trimesh.Trimesh, bool]], *,
                  pitch_mm: float, clearance_mm: float = 0.0, bead_radius_mm: float = 1.0,
-                 tip_allowance_mm: float = 1.0, device: str = "cpu", part_bounds_mm: np.ndarray | None = None,
-                 cache_dir: str | None = None):
+                 tip_allowance_mm: float = 1.0, device: str = "cpu", part_bounds_mm: np.ndarray | None = None):
         import torch
 
         self.device = resolve_device(device)
@@ -196,10 +196,9 @@ class Checker:
         self.model = model
         self.head = head
         self.rho_mm = float(np.linalg.norm(head.vertices, axis=1).max())
-        self.tree = tree_tensors(cached_sphere_tree(model.centers_mm, model.radii_mm, LEAF_CELL_MM, cache_dir),
-                                 self.device)
-        self.parts = [Part(name, cached_distance_grid(mesh, pitch_mm, closed=closed, name=name, bounds_mm=part_bounds_mm,
-                                                      cache_dir=cache_dir), mesh) for name, mesh, closed in parts]
+        self.tree = tree_tensors(cached_sphere_tree(model.centers_mm, model.radii_mm, LEAF_CELL_MM), self.device)
+        self.parts = [Part(name, cached_distance_grid(mesh, pitch_mm, closed=closed, name=name, bounds_mm=part_bounds_mm),
+                           mesh) for name, mesh, closed in parts]
         self.reference = ExactReference(head, {p.name: p.mesh for p in self.parts},
                                         tip_allowance_mm=self.tip_allowance_mm)
         self._margin_request = coal.CollisionRequest()  # ``_exact_part``'s, its margin set per test
@@ -210,17 +209,16 @@ class Checker:
         if self.bead_radius_mm > 0:
             clipped = self.reference._bead_head
             # The head above the allowance, in the head frame, at the pitch (filters candidate beads).
-            self.head_grid = cached_distance_grid(clipped, self.pitch_mm, closed=True, name="head", cache_dir=cache_dir)
+            self.head_grid = cached_distance_grid(clipped, self.pitch_mm, closed=True, name="head")
             # Only balls reaching above the allowance plane can meet a bead.
             above = model.centers_mm[:, 2] + model.radii_mm > self.tip_allowance_mm
             self.dep_tree = tree_tensors(cached_sphere_tree(model.centers_mm[above], model.radii_mm[above],
-                                                            LEAF_CELL_MM, cache_dir), self.device)
+                                                            LEAF_CELL_MM), self.device)
             self._head_triangles_clipped = np.asarray(clipped.triangles, dtype=np.float64)
             # Exact bead tests: a bead's ball (radius + clearance + sweep margin, <= a pitch) against
             # the clipped head's triangles near it.
             self.near_head = cached_near_surface(self._head_triangles_clipped,
-                                                 self.bead_radius_mm + self.clearance_mm + 1.5 * self.pitch_mm,
-                                                 cache_dir=cache_dir)
+                                                 self.bead_radius_mm + self.clearance_mm + 1.5 * self.pitch_mm)
 
     # -- the sphere-tree test ----------------------------------------------------------------
     def _tensor(self, a, dtype=None):

@@ -151,16 +151,15 @@ def marked_cells(mesh: trimesh.Trimesh, closed: bool, pitch_mm: float, origin_mm
 
 
 def tighten_near_body(dist: np.ndarray, inside: np.ndarray, mesh: trimesh.Trimesh, origin_mm: np.ndarray,
-                      pitch_mm: float) -> int:
+                      pitch_mm: float) -> None:
     """Raises ``dist`` (the EDT, float32, in place) to ``d(c) + h`` at the cells within
-    ``EXACT_BAND_MM`` whose centre is known to lie outside the body (module doc); returns how many
-    cells it computed."""
+    ``EXACT_BAND_MM`` whose centre is known to lie outside the body (module doc)."""
     from ncfix.geometry.near import surface_distances
 
     h = 0.5 * np.sqrt(3.0) * pitch_mm
     cells = np.flatnonzero((dist.ravel() <= EXACT_BAND_MM) & ~inside.ravel())
     if not len(cells):
-        return 0
+        return
     centres = np.asarray(origin_mm, dtype=np.float64) + np.stack(np.unravel_index(cells, dist.shape), axis=1) * pitch_mm
     exact = surface_distances(np.asarray(mesh.triangles, dtype=np.float64), centres, EXACT_BAND_MM + 2.0 * h)
     # A marked cell (D = 0) that is not inside is marked for the surface: known outside only
@@ -169,7 +168,6 @@ def tighten_near_body(dist: np.ndarray, inside: np.ndarray, mesh: trimesh.Trimes
     cells, raised = cells[known], (exact[known] + h).astype(np.float32)
     flat = dist.reshape(-1)
     flat[cells] = np.maximum(flat[cells], raised)
-    return int(len(exact))
 
 
 def distance_transform(free: np.ndarray, pitch_mm: float) -> np.ndarray:

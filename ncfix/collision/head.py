@@ -343,9 +343,6 @@ def cached_head_model(head: trimesh.Trimesh, pitch_mm: float = 0.5, *, zones: Ri
         cache.fingerprint(*HEAD_SOURCES), {"numpy": cache.version("numpy")},
     )
 
-    def to_arrays(model: HeadModel) -> dict[str, np.ndarray]:
-        return {name: np.asarray(getattr(model, name)) for name in _MODEL_ARRAYS}
-
     def from_arrays(a: dict[str, np.ndarray]) -> HeadModel | None:
         n = len(a["radii_mm"])
         if a["centers_mm"].shape != (n, 3) or any(len(a[k]) != n for k in ("zone", "interior", "group")):
@@ -359,7 +356,7 @@ def cached_head_model(head: trimesh.Trimesh, pitch_mm: float = 0.5, *, zones: Ri
     model, _ = cache.cached("head", key, _MODEL_ARRAYS,
                             lambda: build_head_model(head, pitch_mm, zones=zones, max_level=max_level,
                                                      target_spheres=target_spheres),
-                            to_arrays, from_arrays, cache_dir)
+                            lambda model: cache.fields(model, _MODEL_ARRAYS), from_arrays, cache_dir)
     return model
 
 
@@ -373,9 +370,6 @@ def cached_sphere_tree(centers_mm: np.ndarray, radii_mm: np.ndarray, leaf_cell_m
         cache.fingerprint(*HEAD_SOURCES), {"numpy": cache.version("numpy")},
     )
 
-    def to_arrays(tree: SphereTree) -> dict[str, np.ndarray]:
-        return {name: np.asarray(getattr(tree, name)) for name in _TREE_ARRAYS}
-
     def from_arrays(a: dict[str, np.ndarray]) -> SphereTree | None:
         n = len(a["radius_mm"])
         if a["center_mm"].shape != (n, 3) or a["level_start"][-1] != n:
@@ -383,5 +377,5 @@ def cached_sphere_tree(centers_mm: np.ndarray, radii_mm: np.ndarray, leaf_cell_m
         return SphereTree(**{name: a[name] for name in _TREE_ARRAYS})
 
     tree, _ = cache.cached("tree", key, _TREE_ARRAYS, lambda: build_sphere_tree(centers_mm, radii_mm, leaf_cell_mm),
-                           to_arrays, from_arrays, cache_dir)
+                           lambda tree: cache.fields(tree, _TREE_ARRAYS), from_arrays, cache_dir)
     return tree

@@ -410,11 +410,6 @@ def cached_near_surface(triangles: np.ndarray, cap_mm: float, cell_mm: float = 2
         near.depth  # noqa: B018 - made now, so that it is kept with the rest
         return near
 
-    def to_arrays(near: NearSurface) -> dict[str, np.ndarray]:
-        return {"triangles": near.triangles, "cap_mm": np.float64(near.cap_mm), "cell_mm": np.float64(near.cell_mm),
-                "lo": near.lo, "dims": near.dims, "start": near.start, "listed": near.listed, "inside": near.inside,
-                "sign_lo": near.sign_lo, "sign_pitch": np.float64(near.sign_pitch), "depth": near.depth}
-
     def from_arrays(a: dict[str, np.ndarray]) -> NearSurface | None:
         dims, start = a["dims"], a["start"]
         if dims.shape != (3,) or len(start) != int(np.prod(dims)) + 1 or start[-1] != len(a["listed"]) \
@@ -427,5 +422,6 @@ def cached_near_surface(triangles: np.ndarray, cap_mm: float, cell_mm: float = 2
         near._depth = a["depth"]
         return near
 
-    near, _ = cache.cached("near", key, _NEAR_ARRAYS, build, to_arrays, from_arrays, cache_dir)
+    near, _ = cache.cached("near", key, _NEAR_ARRAYS, build, lambda near: cache.fields(near, _NEAR_ARRAYS),
+                           from_arrays, cache_dir)
     return near
