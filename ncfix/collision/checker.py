@@ -44,13 +44,12 @@ import numpy as np
 import trimesh
 
 from ncfix.collision import descent
-from ncfix.collision.deposit import BeadField, BeadStore
+from ncfix.collision.deposit import BeadCells, BeadField, BeadStore
 from ncfix.collision.descent import HostTree
 from ncfix.collision.exact_beads import BeadBuckets, first_bead_hits
 from ncfix.collision.split import thread_count
 from ncfix.collision.grid import DistanceGrid, cached_distance_grid
 from ncfix.collision.head import HeadModel, SphereTree, cached_sphere_tree
-from ncfix.geometry.cells import group_cells
 from ncfix.geometry.near import cached_near_surface
 from ncfix.reference import ExactReference
 
@@ -489,12 +488,14 @@ class Checker:
 
     def _tip_cells(self, store: BeadStore, pending: np.ndarray, pending_seq: np.ndarray, key: tuple,
                    centre: np.ndarray, radius: float):
-        """The beads a pose at ``key`` (seq, tip in µm) sees within ``radius`` of ``centre`` and their
-        cells (``deposit_free``): (beads, members, counts, starts, cell centres, cell radii), or
-        None when there are none. A correction's walk asks at one tip many times: the gathering
-        is kept per tip for one store state and one set of pending beads, and reused while the
-        ball asked for lies inside the ball gathered (a superset of the beads: the same answers,
-        as every later filter is a bound and the last test exact)."""
+        """The beads a pose at ``key`` (seq, tip in µm) sees within ``radius`` of ``centre``, in cells
+        (``deposit_free``): (beads, members, counts, starts, cell centres, cell radii), or None when
+        there are none. The store's beads come in the cells of its levels (``BeadStore.cells``,
+        built once per level: whole cells that may reach the ball, so a superset of its beads,
+        which every later filter, a bound, and the last test, exact, answer the same); the pending
+        ones it sees are grouped here. A correction's walk asks at one tip many times: the
+        gathering is kept per tip for one store state and one set of pending beads, and reused
+        while the ball asked for lies inside the ball gathered."""
         state = (id(store), store.count, store.retired)
         cache = self._tip_cache
         if cache is None or cache[0] != state or cache[1] is not pending or cache[2] is not pending_seq:
@@ -504,25 +505,19 @@ class Checker:
         if got is not None and float(np.linalg.norm(centre - got[0])) + radius <= got[1]:
             return got[2]
         radius = radius + TIP_CACHE_SLACK_MM
-        # Store order is laying order: runs of consecutive beads on one move are collinear.
-        beads = [pts[np.sort(np.asarray(tree.query_ball_point(centre, radius), dtype=np.int64))]
-                 for tree, pts in (store.trees() if store.count else [])]
+        groups = [level.take(level.near(centre, radius)) for level in
+                  (store.cells(BEAD_CELL_MM) if store.count else [])]
         if len(pending):
             seen = pending[pending_seq <= key[0]]
-            beads.append(seen[np.linalg.norm(seen - centre, axis=1) <= radius])
-        B = np.concatenate(beads) if beads else np.zeros((0, 3))
+            groups.append(BeadCells(seen[np.linalg.norm(seen - centre, axis=1) <= radius], BEAD_CELL_MM).take())
+        groups = [g for g in groups if len(g[0])]
         cells = None
-        if len(B):
-            # Two levels: cells of beads (BEAD_CELL_MM cubes, a centre and a radius each), then beads.
-            cell_key = np.floor(B / BEAD_CELL_MM).astype(np.int64)
-            cell_of, members, counts = group_cells(cell_key)
-            starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-            cc = np.zeros((len(counts), 3))
-            np.add.at(cc, cell_of, B)
-            cc /= counts[:, None]
-            cr = np.zeros(len(counts))
-            np.maximum.at(cr, cell_of, np.linalg.norm(B - cc[cell_of], axis=1))
-            cells = (B, members, counts, starts, cc, cr)
+        if groups:
+            B = np.concatenate([g[0] for g in groups])
+            counts = np.concatenate([g[1] for g in groups])
+            starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+            cells = (B, np.arange(len(B)), counts, starts, np.concatenate([g[2] for g in groups]),
+                     np.concatenate([g[3] for g in groups]))
         if len(tips) >= TIP_CACHE_MAX:
             tips.clear()
         tips[key] = (centre.copy(), radius, cells)

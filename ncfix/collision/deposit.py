@@ -29,6 +29,8 @@ from enum import Enum
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ncfix.geometry.cells import group_cells
+
 # Exact bead centres kept (the newest; BeadStore): 2**18 beads is about 65 m of deposited path at
 # the 0.5 mm pitch (beads every 0.25 mm), 6 MB of centres and about as much of k-d trees.
 EXACT_BEADS_MAX = 1 << 18
@@ -104,7 +106,8 @@ class BeadStore:
         self.radius_mm = float(radius_mm)
         self.exact_max = int(exact_max if exact_max is not None else EXACT_BEADS_MAX)
         self.level_max = max(1, self.exact_max // 4)
-        self._levels: list[list] = []  # [points (m, 3) float64 in laying order, cKDTree or None], oldest first
+        # [points (m, 3) float64 in laying order, cKDTree or None, {cell mm: BeadCells}], oldest first
+        self._levels: list[list] = []
         self._open: list[np.ndarray] = []  # beads not in a level yet (newest)
         self._open_n = 0
         self.count = 0  # every bead ever added
@@ -140,7 +143,7 @@ class BeadStore:
             if self.retired:
                 raise RuntimeError("the bead field's pitch cannot change once beads are retired")
             self._field = BeadField(self.radius_mm, pitch_mm)
-            self._unstamped = [p for p, _ in self._levels] + list(self._open)
+            self._unstamped = [level[0] for level in self._levels] + list(self._open)
         for pts in self._unstamped:
             self._field.add(pts)
         self._unstamped = []
@@ -157,7 +160,7 @@ class BeadStore:
         while self._levels and len(self._levels[-1][0]) <= len(pts) and \
                 len(self._levels[-1][0]) + len(pts) <= self.level_max:
             pts = np.concatenate([self._levels.pop()[0], pts])
-        self._levels.append([pts, None])
+        self._levels.append([pts, None, {}])
 
     def _retire(self) -> None:
         """Move the oldest levels into the old field until at most ``exact_max`` beads stay exact,
@@ -166,14 +169,14 @@ class BeadStore:
         self._close()
         retired = False
         while self._levels and self.count - self.retired > self.exact_max:
-            pts, _ = self._levels.pop(0)
+            pts = self._levels.pop(0)[0]
             if self.old is None:  # twice as coarse: 1/8 of the memory and of the stamping
                 self.old = BeadField(self.radius_mm, OLD_FIELD_COARSENING * self._field.pitch_mm)
                 self._field.below = self.old
             self.old.add(pts)
             self.retired += len(pts)
             retired = True
-        kept = [p for p, _ in self._levels] + list(self._open)
+        kept = [level[0] for level in self._levels] + list(self._open)
         if retired and kept:
             lo = np.min([p.min(axis=0) for p in kept], axis=0)
             hi = np.max([p.max(axis=0) for p in kept], axis=0)
@@ -185,12 +188,24 @@ class BeadStore:
         for level in self._levels:
             if level[1] is None:
                 level[1] = cKDTree(level[0], leafsize=16, balanced_tree=False, compact_nodes=False)
-        return [(tree, pts) for pts, tree in self._levels]
+        return [(level[1], level[0]) for level in self._levels]
+
+    def cells(self, cell_mm: float) -> list["BeadCells"]:
+        """The exact levels' beads grouped in cubes of ``cell_mm`` (``BeadCells``), oldest first
+        (built here when missing, kept with their level)."""
+        self._close()
+        out = []
+        for level in self._levels:
+            if cell_mm not in level[2]:
+                level[2][cell_mm] = BeadCells(level[0], cell_mm)
+            out.append(level[2][cell_mm])
+        return out
 
     @property
     def nbytes(self) -> int:
         fields = sum(f.nbytes for f in (self._field, self.old) if f is not None)
-        exact = sum(p.nbytes * (2 if tree is not None else 1) for p, tree in self._levels) + self._open_n * 24
+        exact = sum(p.nbytes * (2 if tree is not None else 1) + sum(c.nbytes for c in cells.values())
+                    for p, tree, cells in self._levels) + self._open_n * 24
         return int(exact + fields)
 
     # -- queries -----------------------------------------------------------------------------
@@ -202,6 +217,49 @@ class BeadStore:
             d, _ = tree.query(centers, k=1, distance_upper_bound=upper_mm)
             np.minimum(out, d, out=out)
         return out
+
+
+class BeadCells:
+    """Beads grouped in cubes of ``cell_mm``: each cell's beads (consecutive in ``order``, in the
+    order given: laying order), its centre (their mean) and radius (the farthest of them from it),
+    and a k-d tree of the centres (built on the first ``near``)."""
+
+    def __init__(self, points_mm: np.ndarray, cell_mm: float):
+        self.points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+        _, self.order, self.counts = group_cells(np.floor(self.points / cell_mm).astype(np.int64))
+        self.starts = np.concatenate([[0], np.cumsum(self.counts)[:-1]]).astype(np.int64)
+        if len(self.points):
+            ordered = self.points[self.order]
+            self.centre = np.add.reduceat(ordered, self.starts, axis=0) / self.counts[:, None]
+            off = np.linalg.norm(ordered - np.repeat(self.centre, self.counts, axis=0), axis=1)
+            self.radius = np.maximum.reduceat(off, self.starts)
+        else:
+            self.centre, self.radius = np.zeros((0, 3)), np.zeros(0)
+        self.widest = float(self.radius.max()) if len(self.radius) else 0.0
+        self._tree: cKDTree | None = None
+
+    def near(self, centre_mm: np.ndarray, radius_mm: float) -> np.ndarray:
+        """Indices (ascending) of the cells that may hold a bead within ``radius_mm`` of the point."""
+        if self._tree is None:
+            self._tree = cKDTree(self.centre)
+        idx = np.sort(np.asarray(self._tree.query_ball_point(centre_mm, radius_mm + self.widest), dtype=np.int64))
+        far = np.linalg.norm(self.centre[idx] - centre_mm, axis=1) - self.radius[idx]
+        return idx[far <= radius_mm]
+
+    def take(self, cells: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(beads of these cells (m, 3), cell by cell, each in the order given; beads per cell (k,);
+        centres (k, 3); radii (k,)); every cell when None."""
+        if cells is None:
+            return self.points[self.order], self.counts, self.centre, self.radius
+        counts = self.counts[cells]
+        offs = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+        return self.points[self.order[np.repeat(self.starts[cells], counts) + offs]], counts, \
+            self.centre[cells], self.radius[cells]
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.order.nbytes + self.counts.nbytes + self.starts.nbytes + self.centre.nbytes
+                   + self.radius.nbytes + (self.centre.nbytes if self._tree is not None else 0))
 
 
 class BeadField:

@@ -153,27 +153,72 @@ class BeadBuckets:
     which each is seen: -1 = always) in a bucket grid over the region a batch of queries covers."""
 
     def __init__(self, beads: np.ndarray, seq: np.ndarray, lo: np.ndarray, hi: np.ndarray):
-        lo = np.maximum(np.asarray(lo, dtype=np.float64), beads.min(axis=0) if len(beads) else lo)
-        hi = np.minimum(np.asarray(hi, dtype=np.float64), beads.max(axis=0) if len(beads) else hi)
-        inside = np.nonzero((beads >= lo).all(axis=1) & (beads <= hi).all(axis=1))[0] if len(beads) else \
-            np.zeros(0, dtype=np.int64)
-        self.beads = np.ascontiguousarray(beads[inside])
-        self.seq = np.ascontiguousarray(np.asarray(seq, dtype=np.int64)[inside])
-        self.index = inside  # into the beads given
+        beads = np.ascontiguousarray(beads, dtype=np.float64).reshape(-1, 3)
+        lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+        # The beads inside [lo, hi] (into the beads given, ascending) are those inside the box cut
+        # to the beads' own bounds, which gives the grid its origin.
+        self.index, low, high = _inside(beads, lo, hi)
+        if len(beads):
+            lo, hi = np.maximum(lo, low), np.minimum(hi, high)
         cell = CELL_MM
-        extent = np.maximum(hi - lo, 0.0) if len(inside) else np.zeros(3)
+        extent = np.maximum(hi - lo, 0.0) if len(self.index) else np.zeros(3)
         while np.prod(np.floor(extent / cell) + 1) > MAX_CELLS:
             cell *= 2.0
         self.lo, self.cell = lo, cell
         self.dims = (np.floor(extent / cell) + 1).astype(np.int64)
-        if len(inside):
-            ijk = np.minimum(np.floor((self.beads - lo) / cell).astype(np.int64), self.dims - 1)
-            flat = (ijk[:, 0] * self.dims[1] + ijk[:, 1]) * self.dims[2] + ijk[:, 2]
-        else:
-            flat = np.zeros(0, dtype=np.int64)
-        self.cell_beads = np.argsort(flat, kind="stable").astype(np.int64)
-        counts = np.bincount(flat, minlength=int(np.prod(self.dims)))
-        self.cell_start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self.beads = np.ascontiguousarray(beads[self.index])
+        self.seq = np.ascontiguousarray(np.asarray(seq, dtype=np.int64)[self.index])
+        # A compiled counting sort: what np.argsort(flat, kind="stable") and np.bincount gave.
+        self.cell_beads, self.cell_start = _sort_by_cell(self.beads, lo, float(cell), self.dims)
+
+
+def _inside(beads, lo, hi):  # pragma: no cover - compiled
+    """(indices (ascending) of the beads (n, 3) inside the box [lo, hi] (bounds included), the
+    beads' smallest and largest coordinates (3,) each)."""
+    out = np.empty(beads.shape[0], np.int64)
+    low = np.full(3, np.inf)
+    high = np.full(3, -np.inf)
+    m = 0
+    for i in range(beads.shape[0]):
+        for a in range(3):
+            low[a] = min(low[a], beads[i, a])
+            high[a] = max(high[a], beads[i, a])
+        if lo[0] <= beads[i, 0] <= hi[0] and lo[1] <= beads[i, 1] <= hi[1] and lo[2] <= beads[i, 2] <= hi[2]:
+            out[m] = i
+            m += 1
+    return out[:m].copy(), low, high
+
+
+def _sort_by_cell(beads, lo, cell, dims):  # pragma: no cover - compiled
+    """(the beads (m, 3) ordered by cell, stably (m,); each cell's first position (cells + 1,)):
+    cell (i, j, k) = floor((b - lo) / cell), clipped to dims, numbered (i·dims₁ + j)·dims₂ + k."""
+    m = beads.shape[0]
+    cells = dims[0] * dims[1] * dims[2]
+    flat = np.empty(m, np.int64)
+    start = np.zeros(cells + 1, np.int64)
+    for j in range(m):
+        ix = min(np.int64(np.floor((beads[j, 0] - lo[0]) / cell)), dims[0] - 1)
+        iy = min(np.int64(np.floor((beads[j, 1] - lo[1]) / cell)), dims[1] - 1)
+        iz = min(np.int64(np.floor((beads[j, 2] - lo[2]) / cell)), dims[2] - 1)
+        flat[j] = (ix * dims[1] + iy) * dims[2] + iz
+        start[flat[j] + 1] += 1
+    for c in range(cells):
+        start[c + 1] += start[c]
+    fill = start[:cells].copy()
+    order = np.empty(m, np.int64)
+    for j in range(m):
+        order[fill[flat[j]]] = j
+        fill[flat[j]] += 1
+    return order, start
+
+
+try:
+    from numba import njit as _njit
+
+    _inside = _njit(cache=True, nogil=True)(_inside)
+    _sort_by_cell = _njit(cache=True, nogil=True)(_sort_by_cell)
+except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
+    pass
 
 
 def first_bead_hits(C, R, lin, ang, seq, node_pose, node_c, node_r, node_reach, buckets: BeadBuckets,
