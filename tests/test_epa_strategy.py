@@ -298,16 +298,47 @@ def test_the_head_is_tilted_away_from_what_it_printed(made, head):
     print(f"\nepa deposit: {made[-1].last}")
 
 
+def test_walks_run_in_step_get_the_answers_they_get_alone(made, monkeypatch):
+    # The required tilts' walks run in step (one Episode.free call per round for all of them):
+    # each must ask for and get exactly what it gets alone, in one ball or none, found or not.
+    from ncfix.correct import epa_strategy
+
+    solvers = []
+    run = epa_strategy._EpisodeSolver.run
+    monkeypatch.setattr(epa_strategy._EpisodeSolver, "run", lambda self: solvers.append(self) or run(self))
+    data, _, _ = _wall_deposit_program()
+    _run(data, deposit_codes=("M3", "M5"), max_tilt=20.0, max_step=4.0)
+    solver = solvers[0]
+    levels = [int(l) for l in np.nonzero(solver.ep.is_colliding)[0]]
+    assert len(levels) >= 4
+    asks = ([(l, None, None) for l in levels] + [(l, np.array([0.0, 0.05]), None) for l in levels]
+            + [(l, None, [(np.zeros(2), 1e-4)]) for l in levels])  # a ball too small to leave N0
+    monkeypatch.setattr(epa_strategy, "TILTS_IN_STEP", 5)  # groups of walks, and a short last one
+    tests = solver.ep.tests
+    together = solver._searches(asks)
+    tests, tests_together = solver.ep.tests, solver.ep.tests - tests
+    alone = [solver._search(*ask) for ask in asks]
+    assert solver.ep.tests - tests == tests_together > len(asks)
+    assert len(together) == len(alone) == len(asks)
+    for (found, bodies), (found_alone, bodies_alone) in zip(together, alone):
+        assert bodies == bodies_alone
+        assert (found is None) == (found_alone is None)
+        assert found is None or np.array_equal(found, found_alone)
+    kinds = [found is None for found, _ in together]
+    assert any(kinds) and not all(kinds)
+
+
 def test_blocks_the_walk_leaves_colliding_are_searched_by_the_graph(made, head, tmp_path, monkeypatch):
     # The walk is greedy: here it is made to find nothing (every tilt search comes back empty),
     # so it leaves the wall's 8 blocks as programmed; the orientation graph then searches the
     # episode, frees them all, and its answer is kept. With the fallback off they stay.
     from ncfix.correct import epa
 
-    def no_tilt(self, C, N0, rotation_of, is_free, *, max_tilt_deg, **kw):
+    def no_tilt(self, C, N0, rotation_of, *, max_tilt_deg, **kw):
         return epa.TiltResult(None, max_tilt_deg, 0, ["part:wall.stl"])
+        yield  # a walk that asks nothing
 
-    monkeypatch.setattr(epa.EpaModel, "tilt", no_tilt)
+    monkeypatch.setattr(epa.EpaModel, "tilt_steps", no_tilt)
     data, wall = _pass_program()
     wall.export(tmp_path / "wall.stl")
     limits = dict(max_tilt=15.0, max_step=3.0)

@@ -27,7 +27,7 @@ the answer is as safe as that checker.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass, field
 from itertools import islice
 from pathlib import Path
@@ -42,6 +42,8 @@ from ncfix.geometry.near import _tri_closest
 
 RotationOf = Callable[[np.ndarray], np.ndarray]
 IsFree = Callable[[np.ndarray], np.ndarray]
+# A tilt walk driven by its caller (``EpaModel.tilt_steps``): yields batches, is sent their answers.
+TiltWalk = Generator[np.ndarray, np.ndarray, "TiltResult"]
 
 VARIANTS = ("fixed", "lami")
 # Orientations handed to ``is_free`` per call: the walk's next steps, or one fallback ring.
@@ -222,14 +224,33 @@ class EpaModel:
         Orientations are tried in order of the walk, ``_BATCH`` per ``is_free`` call. When the
         hull model finds no penetration at N0, or E is parallel to N0 (no tilt direction), a
         fallback tries ``_RING_AZIMUTHS`` azimuths at each tilt step and keeps the first free one
-        at the smallest tilt.
+        at the smallest tilt. ``tilt_steps`` is the same walk, driven by its caller.
         """
+        walk = self.tilt_steps(C, N0, rotation_of, max_tilt_deg=max_tilt_deg, step_deg=step_deg,
+                               variant=variant, beads_mm=beads_mm)
+        return run_tilts([walk], lambda asked: [is_free(normals) for _, normals in asked])[0]
+
+    def tilt_steps(
+        self,
+        C: np.ndarray,
+        N0: np.ndarray,
+        rotation_of: RotationOf,
+        *,
+        max_tilt_deg: float,
+        step_deg: float = 0.5,
+        variant: str = "fixed",
+        beads_mm: np.ndarray | None = None,
+    ) -> TiltWalk:
+        """``tilt``'s walk as a generator: it yields each batch of orientations to test ((k, 3):
+        N0 alone first, then up to ``_BATCH`` of the walk), is sent their answers ((k,) bool)
+        and returns the TiltResult. Walks of many tips can so be tested together (``run_tilts``);
+        each asks and gets exactly what ``tilt`` would."""
         if variant not in VARIANTS:
             raise ValueError(f"unknown tilt variant {variant!r}; known: {', '.join(VARIANTS)}")
         c = np.asarray(C, dtype=np.float64).reshape(3)
         n0 = np.asarray(N0, dtype=np.float64).reshape(3)
         n0 = n0 / np.linalg.norm(n0)
-        if bool(np.asarray(is_free(n0[None]))[0]):
+        if bool(np.asarray((yield n0[None]), dtype=bool).reshape(-1)[0]):
             return TiltResult(n0, 0.0, 0, [])
         start = self.extraction_vector(c, _rotation(rotation_of, n0), beads_mm)
         axis = _tilt_axis(n0, start.vector)
@@ -240,9 +261,17 @@ class EpaModel:
             walk = iter(axis_rotation(axis, np.radians(angles)) @ n0)
         else:
             walk = self._lami_walk(c, n0, axis, start, rotation_of, max_tilt_deg, step_deg, beads_mm)
-        normal, tried, widest = _first_free(walk, is_free, n0)
-        tilt_deg = widest if normal is None else float(angle_between_deg(n0, normal))
-        return TiltResult(normal, tilt_deg, tried, start.bodies)
+        tried = 0
+        widest = 0.0
+        while batch := list(islice(walk, _BATCH)):
+            normals = np.asarray(batch, dtype=np.float64)
+            hit = np.flatnonzero(np.asarray((yield normals), dtype=bool).reshape(-1))
+            if hit.size:
+                normal = normals[hit[0]]
+                return TiltResult(normal, float(angle_between_deg(n0, normal)), tried + int(hit[0]) + 1, start.bodies)
+            tried += len(normals)
+            widest = max(widest, float(angle_between_deg(n0, normals).max()))
+        return TiltResult(None, widest, tried, start.bodies)
 
     def _lami_walk(
         self,
@@ -350,24 +379,27 @@ def _ring(n0: np.ndarray, r0: np.ndarray, angles_deg: np.ndarray) -> Iterator[np
         yield from np.cos(tilt) * n0 + np.sin(tilt) * around
 
 
-def _first_free(
-    walk: Iterator[np.ndarray], is_free: IsFree, n0: np.ndarray
-) -> tuple[np.ndarray | None, int, float]:
-    """(first orientation ``is_free`` accepts or None, orientations tried, largest tilt from n0 tried).
+def run_tilts(walks: list[TiltWalk], test: Callable[[list[tuple[int, np.ndarray]]], list[np.ndarray]]) -> list[TiltResult]:
+    """Drive tilt walks (``EpaModel.tilt_steps``) in step: each round, ``test`` gets (walk index,
+    batch) of every unfinished walk, in the walks' order, and answers each batch ((k,) bool);
+    returns each walk's TiltResult."""
+    results: list[TiltResult | None] = [None] * len(walks)
+    asks: dict[int, np.ndarray] = {}
 
-    The walk is checked ``_BATCH`` orientations per call; the count stops at the answer.
-    """
-    tried = 0
-    widest = 0.0
-    while batch := list(islice(walk, _BATCH)):
-        normals = np.asarray(batch, dtype=np.float64)
-        free = np.asarray(is_free(normals), dtype=bool).reshape(-1)
-        hit = np.flatnonzero(free)
-        if hit.size:
-            return normals[hit[0]], tried + int(hit[0]) + 1, widest
-        tried += len(normals)
-        widest = max(widest, float(angle_between_deg(n0, normals).max()))
-    return None, tried, widest
+    def advance(i: int, answer: np.ndarray | None) -> None:
+        try:
+            asks[i] = next(walks[i]) if answer is None else walks[i].send(answer)
+        except StopIteration as done:
+            results[i] = done.value
+
+    for i in range(len(walks)):
+        advance(i, None)
+    while asks:
+        asked = list(asks.items())
+        asks.clear()
+        for (i, _), answer in zip(asked, test(asked)):
+            advance(i, answer)
+    return results
 
 
 def _within_hull(beads, c, r, lo, hi, normals, offsets, rad):  # pragma: no cover - compiled

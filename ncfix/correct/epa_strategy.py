@@ -60,7 +60,7 @@ import time
 
 import numpy as np
 
-from ncfix.correct.epa import VARIANTS, EpaModel
+from ncfix.correct.epa import VARIANTS, EpaModel, run_tilts
 from ncfix.correct.solve import GraphStrategy
 from ncfix.errors import ConfigError
 from ncfix.geometry.cells import first_of_each_cell
@@ -86,6 +86,8 @@ BUDGET_ROUNDS = 6
 MAX_MOVES = 4
 # Angles below this (radians) are zero: an offset this small is the programmed orientation.
 _TINY_RAD = 1e-12
+# Tilt walks run in step (``_searches``): each round tests up to 32 x 8 orientations in one call.
+TILTS_IN_STEP = 32
 # Budgets stay this far (degrees) under the limits, so float noise never crosses them.
 _MARGIN_DEG = 1e-7
 
@@ -370,9 +372,8 @@ class _EpisodeSolver:
 
     def _required(self) -> None:
         """Step 1: the EPA tilt of every colliding level, from its programmed orientation."""
-        for l in np.nonzero(self.ep.is_colliding)[0]:
-            l = int(l)
-            found, bodies = self._search(l)
+        levels = [int(l) for l in np.nonzero(self.ep.is_colliding)[0]]
+        for l, (found, bodies) in zip(levels, self._searches([(l, None, None) for l in levels])):
             if found is None:
                 what = f" ({', '.join(bodies)})" if bodies else ""
                 self.hopeless[l] = (f"no free orientation within {self.s.max_tilt:g}° (--max-tilt) found along "
@@ -624,8 +625,43 @@ class _EpisodeSolver:
         """(offset (2,) or None, bodies): the EPA tilt at level l from ``start`` (an offset; None:
         the programmed orientation), accepted by ``Episode.free`` within Θ of N0 (and inside every
         ball (centre offset, radius) of ``balls`` when given)."""
+        return self._searches([(l, start, balls)])[0]
+
+    def _searches(self, asks: list[tuple]) -> list[tuple]:
+        """``_search`` of each (level, start, balls), the walks run in step, ``TILTS_IN_STEP`` at a
+        time: each round's orientations of every walk are tested in one ``Episode.free`` call (a
+        batch large enough for the kernels' threads). Each walk asks and gets what it would alone."""
+        out = []
+        for first in range(0, len(asks), TILTS_IN_STEP):
+            walks = [self._walk(*ask) for ask in asks[first:first + TILTS_IN_STEP]]
+
+            def test(asked: list[tuple[int, np.ndarray]], walks=walks) -> list[np.ndarray]:
+                ok = [walks[i][2](normals) for i, normals in asked]
+                levels = np.concatenate([np.full(int(k.sum()), walks[i][1]) for (i, _), k in zip(asked, ok)])
+                normals = np.concatenate([n[k] for (_, n), k in zip(asked, ok)])
+                free = self.ep.free(levels, normals) if len(levels) else np.zeros(0, dtype=bool)
+                answers, at = [], 0
+                for k in ok:
+                    answer = np.zeros(len(k), dtype=bool)
+                    answer[k] = free[at:at + int(k.sum())]
+                    at += int(k.sum())
+                    answers.append(answer)
+                return answers
+
+            results = run_tilts([w[0] for w in walks], test)
+            for (_, l, _, Q), result in zip(walks, results):
+                if result.normal is None:
+                    out.append((None, result.bodies))
+                    continue
+                found = _log(Q, result.normal)
+                self._free_cache[_key(l, found)] = True
+                out.append((found, result.bodies))
+        return out
+
+    def _walk(self, l: int, start: np.ndarray | None, balls: list[tuple[np.ndarray, float]] | None):
+        """(tilt walk, level, allowed: (k, 3) normals -> (k,) bool (within Θ and the balls), frame Q)."""
         self.searches += 1
-        ep, Q = self.ep, self.Q[l]
+        Q = self.Q[l]
         n0 = self.N0[l]
         start_n = n0 if start is None else _exp(Q, start)
         # The walk may cross the whole cap from its start, but never leaves the ball: no farther
@@ -634,26 +670,19 @@ class _EpisodeSolver:
         if balls:
             reach_deg = min(reach_deg, float(np.degrees(2.0 * min(r for _, r in balls))) + self.s.step_deg)
 
-        def is_free(normals: np.ndarray) -> np.ndarray:
+        def allowed(normals: np.ndarray) -> np.ndarray:
             normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
             ok = angle_between_deg(normals, n0[None]) <= self.s.max_tilt + 1e-9
             if balls:
                 local = _log_many(Q, normals)
                 for centre, radius in balls:
                     ok &= np.linalg.norm(local - centre, axis=1) <= radius + 1e-10
-            out = np.zeros(len(normals), dtype=bool)
-            if ok.any():
-                out[ok] = ep.free(np.full(int(ok.sum()), l), normals[ok])
-            return out
+            return ok
 
-        result = self.model.tilt(ep.C0[l], start_n, self._rotation_of(l), is_free,
-                                 max_tilt_deg=min(reach_deg, 180.0), step_deg=self.s.step_deg,
-                                 variant=self.s.variant, beads_mm=self._beads(l))
-        if result.normal is None:
-            return None, result.bodies
-        found = _log(Q, result.normal)
-        self._free_cache[_key(l, found)] = True
-        return found, result.bodies
+        walk = self.model.tilt_steps(self.ep.C0[l], start_n, self._rotation_of(l),
+                                     max_tilt_deg=min(reach_deg, 180.0), step_deg=self.s.step_deg,
+                                     variant=self.s.variant, beads_mm=self._beads(l))
+        return walk, l, allowed, Q
 
     def _rotation_of(self, l: int):
         ep = self.ep
