@@ -682,6 +682,33 @@ def test_deposit_answers_do_not_depend_on_the_threads(bead_checker, monkeypatch,
     assert got[2] == want[2]
 
 
+def test_deposit_free_is_the_exact_answer_at_many_orientations_about_few_tips(bead_checker):
+    """``deposit_free`` (a correction's candidate test: many orientations about a few tips, the
+    cells' and beads' bounds then the exact test in one compiled loop) calls a pose free exactly
+    when the exact reference finds every bead sphere clear of the head above the allowance, both
+    ways, with pending beads seen from their sequence number on."""
+    beads = _wall_beads(0.5)
+    store = BeadStore(1.0)
+    store.add(beads[: len(beads) // 2])
+    pending = beads[len(beads) // 2:]
+    pending_seq = np.arange(len(pending)) // 200
+    rng = np.random.default_rng(77)
+    tips = np.stack([rng.uniform(-12, 12, 24), rng.uniform(-8, 8, 24), rng.uniform(0, 40, 24)], axis=1)
+    which = np.repeat(np.arange(len(tips)), 60)
+    C, R = tips[which], _random_rotations(rng, len(which), 40.0)
+    seq = which * 4
+    bead_checker._tip_cache = None
+    free = bead_checker.deposit_free(C, R, seq, store, pending, pending_seq)
+    clearance = np.empty(len(C))
+    for s in np.unique(seq):
+        sel = seq == s
+        seen = np.concatenate([beads[: len(beads) // 2], pending[pending_seq <= s]])
+        clearance[sel] = _exact_bead_clearance(bead_checker.reference, C[sel], R[sel], seen, 1.0)
+    decided = np.abs(clearance) > 1e-6  # exactly at contact either answer is right
+    assert (free[decided] == (clearance[decided] > 0)).all()
+    assert 0.1 * len(C) < (~free).sum() < 0.9 * len(C)
+
+
 def test_deposit_free_reuses_a_tips_beads_only_while_they_hold(bead_checker):
     """``deposit_free`` keeps the beads it gathered per tip: asked again at the same tips (other
     orientations, other batch sizes) it answers as with nothing kept, and a store that grew, or

@@ -46,7 +46,7 @@ import trimesh
 from ncfix.collision import descent
 from ncfix.collision.deposit import BeadCells, BeadField, BeadStore
 from ncfix.collision.descent import HostTree
-from ncfix.collision.exact_beads import BeadBuckets, first_bead_hits
+from ncfix.collision.exact_beads import BeadBuckets, candidates_free, first_bead_hits
 from ncfix.collision.split import thread_count
 from ncfix.collision.grid import DistanceGrid, cached_distance_grid
 from ncfix.collision.head import HeadModel, SphereTree, cached_sphere_tree
@@ -460,30 +460,10 @@ class Checker:
             cells = self._tip_cells(store, pending, pending_seq, tuple(int(v) for v in key), centre, radius)
             if cells is None:
                 continue
-            B, members, counts, starts, cc, cr = cells
-            for a in range(0, len(sel), 256):
-                part = sel[a:a + 256]
-                lc = np.einsum("pji,pcj->pci", R[part], cc[None, :, :] - C[part, None, :])
-                pose, cell = np.nonzero(lc[:, :, 2] + cr[None, :] + need > ta)  # below the allowance: exempt
-                lb = self.head_grid.lower_bound_np(lc[pose, cell])
-                keep = lb <= need + cr[cell]
-                pose, cell = pose[keep], cell[keep]
-                if len(pose) == 0:
-                    continue
-                # expand the failing cells into their beads
-                cnt = counts[cell]
-                pose = np.repeat(pose, cnt)
-                offs = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-                bead = members[np.repeat(starts[cell], cnt) + offs]
-                lbead = np.einsum("nji,nj->ni", R[part[pose]], B[bead] - C[part[pose]])
-                lb = self.head_grid.lower_bound_np(lbead)
-                near = (lb <= need) & (lbead[:, 2] + need > ta)
-                pose, lbead, lb = pose[near], lbead[near], lb[near]
-                order = np.lexsort((lb, pose))  # the most suspect bead of a pose first
-                first, tested = self.near_head.first_touch(lbead[order], np.full(len(pose), need), lb[order] <= 0,
-                                                           pose[order], len(part))
-                self.stats.exact_bead_tests += tested
-                free[part[first >= 0]] = False
+            ok, tested = candidates_free(C[sel], R[sel], cells, self.head_grid, self.near_head, need=need,
+                                         allowance=ta)
+            self.stats.exact_bead_tests += tested
+            free[sel] &= ok
         return free
 
     def _tip_cells(self, store: BeadStore, pending: np.ndarray, pending_seq: np.ndarray, key: tuple,

@@ -148,6 +148,81 @@ except ImportError:  # pragma: no cover - numba is a dependency; plain Python is
     pass
 
 
+def candidates_free(C, R, cells, head_grid, near: NearSurface, *, need: float, allowance: float):
+    """Per pose (n) of one tip (``Checker.deposit_free``): free of the beads in ``cells`` ((beads,
+    members, counts, starts, cell centres, cell radii), ``Checker._tip_cells``); and the beads
+    tested exactly. A cell the head grid's bound clears (or wholly below the allowance plane
+    by more than ``need``) clears its beads; a bead it cannot clear is tested exactly (a ball of
+    radius ``need`` against the clipped head, the centre's side checked where the bound allows it
+    inside), the most suspect first, and a pose stops at its first touching bead."""
+    B, members, counts, starts, cc, cr = cells
+    f64 = np.float64
+    C, R = np.ascontiguousarray(C, f64).reshape(-1, 3), np.ascontiguousarray(R, f64).reshape(-1, 3, 3)
+    hbox, horigin = np.ascontiguousarray(head_grid._box(), f64), np.asarray(head_grid.origin_mm, f64)
+
+    def run(lo, hi):
+        return _candidates_kernel(
+            C[lo:hi], R[lo:hi], np.ascontiguousarray(cc, f64), np.ascontiguousarray(cr, f64),
+            np.ascontiguousarray(counts, np.int64), np.ascontiguousarray(starts, np.int64),
+            np.ascontiguousarray(members, np.int64), np.ascontiguousarray(B, f64), float(need), float(allowance),
+            head_grid.dist_mm, horigin, float(head_grid.pitch_mm), hbox, float(head_grid.margin_mm),
+            near.triangles, near.lo, near.cell_mm, near.dims, near.cap_mm, near.start, near.listed,
+            near.sign_lo, near.sign_pitch, near.inside)
+
+    parts = map_runs(run, len(C))
+    if len(parts) == 1:
+        return ~parts[0][0], int(parts[0][1])
+    return ~np.concatenate([p[0] for p in parts]), int(sum(p[1] for p in parts))
+
+
+def _candidates_kernel(C, R, cc, cr, counts, starts, members, beads, need, allowance,
+                       hdist, horigin, hpitch, hbox, hmargin,
+                       tris, nlo, ncell, ndims, ncap, nstart, nlisted, slo, spitch, inside):  # pragma: no cover - compiled
+    """(hit (n,), beads tested): ``candidates_free``'s loop (head-frame point of a world point q at
+    pose p: R_pᵀ (q − C_p))."""
+    n = C.shape[0]
+    hit = np.zeros(n, np.bool_)
+    tested = 0
+    buf = np.empty((beads.shape[0], 3))
+    buf_lb = np.empty(beads.shape[0])
+    for p in range(n):
+        k = 0
+        for c in range(cc.shape[0]):
+            ex, ey, ez = cc[c, 0] - C[p, 0], cc[c, 1] - C[p, 1], cc[c, 2] - C[p, 2]
+            z = R[p, 0, 2] * ex + R[p, 1, 2] * ey + R[p, 2, 2] * ez
+            if not z + cr[c] + need > allowance:  # wholly below the allowance plane: exempt
+                continue
+            x = R[p, 0, 0] * ex + R[p, 1, 0] * ey + R[p, 2, 0] * ez
+            y = R[p, 0, 1] * ex + R[p, 1, 1] * ey + R[p, 2, 1] * ez
+            if _head_lb(x, y, z, hdist, horigin, hpitch, hbox, hmargin) > need + cr[c]:
+                continue
+            for j in range(starts[c], starts[c] + counts[c]):
+                b = members[j]
+                ex, ey, ez = beads[b, 0] - C[p, 0], beads[b, 1] - C[p, 1], beads[b, 2] - C[p, 2]
+                z = R[p, 0, 2] * ex + R[p, 1, 2] * ey + R[p, 2, 2] * ez
+                if not z + need > allowance:
+                    continue
+                x = R[p, 0, 0] * ex + R[p, 1, 0] * ey + R[p, 2, 0] * ez
+                y = R[p, 0, 1] * ex + R[p, 1, 1] * ey + R[p, 2, 1] * ez
+                lb = _head_lb(x, y, z, hdist, horigin, hpitch, hbox, hmargin)
+                if lb > need:
+                    continue
+                buf[k, 0], buf[k, 1], buf[k, 2] = x, y, z
+                buf_lb[k] = lb
+                k += 1
+        if k == 0:
+            continue
+        order = np.argsort(buf_lb[:k], kind="mergesort")  # the most suspect bead first (stable)
+        for t in range(k):
+            i = order[t]
+            tested += 1
+            if _touch(buf[i, 0], buf[i, 1], buf[i, 2], need, buf_lb[i] <= 0.0, tris, nlo, ncell, ndims, ncap,
+                      nstart, nlisted, slo, spitch, inside):
+                hit[p] = True
+                break
+    return hit, tested
+
+
 class BeadBuckets:
     """Beads (the store's exact ones and the window's pending ones, with the sequence number from
     which each is seen: -1 = always) in a bucket grid over the region a batch of queries covers."""
@@ -216,6 +291,7 @@ try:
     from numba import njit as _njit
 
     _inside = _njit(cache=True, nogil=True)(_inside)
+    _candidates_kernel = _njit(cache=True, nogil=True)(_candidates_kernel)
     _sort_by_cell = _njit(cache=True, nogil=True)(_sort_by_cell)
 except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
     pass
