@@ -331,6 +331,41 @@ def test_bead_field_is_a_lower_bound_on_the_distance_to_the_beads():
     assert np.array_equal(field.lower_bound_np(pts), bound)
 
 
+def test_stamping_gives_every_cell_the_least_value_of_the_chords_that_reach_it():
+    """The compiled stamp (which skips the square root of a cell no chord can lower) leaves every
+    cell of the fine grid at the least of its chords' values, each computed in full, overlapping
+    chords and chords through cells already at 0 included."""
+    from ncfix.collision.deposit import FIELD_SLACK_MM, FINE_LEVELS, _stamp_kernels
+
+    rng = np.random.default_rng(8)
+    h, radius, step = 0.5, 1.0, 3.0 / FINE_LEVELS
+    lo = np.array([-4, -4, -4], dtype=np.int64)
+    a = rng.uniform(0.0, 8.0, (40, 3))
+    b = a + rng.normal(0.0, 2.0, (40, 3))
+    b[::7] = a[::7]  # single beads
+    dev = rng.uniform(0.0, 0.01, 40)
+    grid = np.full((32, 32, 32), FINE_LEVELS, dtype=np.uint8)
+    _stamp_kernels().stamp_chords(grid, lo, h, a, b, dev, radius, step, FINE_LEVELS, FIELD_SLACK_MM)
+    # The reference: every chord's value at every cell, in the kernel's arithmetic, no skipping.
+    p0, p1, p2 = np.meshgrid(*[(np.arange(32) + lo[k]) * h for k in range(3)], indexing="ij")
+    expect = np.full(grid.shape, FINE_LEVELS, dtype=np.int64)
+    for s in range(len(a)):
+        cut = radius + dev[s] + FIELD_SLACK_MM
+        reach = step * FINE_LEVELS + cut
+        d0, d1, d2 = b[s] - a[s]
+        length2 = d0 * d0 + d1 * d1 + d2 * d2
+        inv = 1.0 / length2 if length2 > 0.0 else 0.0
+        q0, q1, q2 = p0 - a[s, 0], p1 - a[s, 1], p2 - a[s, 2]
+        t = np.clip((q0 * d0 + q1 * d1 + q2 * d2) * inv, 0.0, 1.0)
+        e0, e1, e2 = q0 - t * d0, q1 - t * d1, q2 - t * d2
+        dd = e0 * e0 + e1 * e1 + e2 * e2
+        dist = np.sqrt(dd) - cut
+        value = np.where(dist > 0.0, (dist * (1.0 / step)).astype(np.int64), 0)
+        expect = np.where(dd < reach * reach, np.minimum(expect, value), expect)
+    assert np.array_equal(grid, expect)
+    assert (grid == 0).any() and (grid < FINE_LEVELS).mean() > 0.2
+
+
 def test_beads_laid_after_a_pose_are_not_seen_by_it(bead_checker):
     beads = _wall_beads(0.5)
     C, R = _random_bead_poses(400, seed=9)
