@@ -41,6 +41,8 @@ class _Part:
     mesh: trimesh.Trimesh
     bvh: coal.BVHModelOBBRSS
     probe: np.ndarray  # (3,) one vertex, for the containment test
+    lo: np.ndarray  # (3,) its bounding box
+    hi: np.ndarray
 
 
 class ExactReference:
@@ -62,8 +64,15 @@ class ExactReference:
         self._head_bvh = _bvh(head)
         self._head_triangles = np.asarray(head.triangles, dtype=np.float64)
         self._head_vertices = np.asarray(head.vertices, dtype=np.float64)
+        # For ``_nested``'s quick proofs: the head's vertices extreme along its own axes (if one
+        # of them lies outside a box, so does the head), and a bound on its extent along any
+        # direction (twice the largest distance of a vertex from the centroid).
+        v = self._head_vertices
+        self._head_extremes = v[np.unique(np.concatenate([v.argmin(axis=0), v.argmax(axis=0)]))]
+        self._head_span = 2.0 * float(np.linalg.norm(v - v.mean(axis=0), axis=1).max())
         self.parts = [
-            _Part(name, mesh, _bvh(mesh), np.asarray(mesh.vertices[0], dtype=np.float64))
+            _Part(name, mesh, _bvh(mesh), np.asarray(mesh.vertices[0], dtype=np.float64),
+                  *np.array(mesh.bounds, dtype=np.float64))
             for name, mesh in parts.items()
         ]
         self.tip_allowance_mm = float(tip_allowance_mm)
@@ -135,16 +144,22 @@ class ExactReference:
         return False
 
     def _nested(self, part: _Part, c: np.ndarray, r: np.ndarray) -> bool:
-        """With no triangle pair meeting, the bodies overlap only if one holds the other."""
-        head_world = c + self._head_vertices @ r.T
-        head_lo, head_hi = head_world.min(axis=0), head_world.max(axis=0)
-        part_lo, part_hi = part.mesh.bounds
-        if (head_lo >= part_lo).all() and (head_hi <= part_hi).all():
-            if winding_numbers(head_world[:1], np.asarray(part.mesh.triangles))[0] > 0.5:
-                return True
-        if (part_lo >= head_lo).all() and (part_hi <= head_hi).all():
-            part_probe = (part.probe - c) @ r
-            return bool(winding_numbers(part_probe[None], self._head_triangles)[0] > 0.5)
+        """With no triangle pair meeting, the bodies overlap only if one holds the other. Each
+        holds the other only if its box holds the other's; the quick tests below only rule out
+        boxes that cannot (the same answers as testing every vertex, at a tenth of the cost)."""
+        part_lo, part_hi = part.lo, part.hi
+        extremes = c + self._head_extremes @ r.T
+        if (extremes >= part_lo).all() and (extremes <= part_hi).all():
+            head_world = c + self._head_vertices @ r.T
+            if (head_world >= part_lo).all() and (head_world <= part_hi).all():
+                if winding_numbers(head_world[:1], np.asarray(part.mesh.triangles))[0] > 0.5:
+                    return True
+        if (part_hi - part_lo).max() <= self._head_span:
+            head_world = c + self._head_vertices @ r.T
+            head_lo, head_hi = head_world.min(axis=0), head_world.max(axis=0)
+            if (part_lo >= head_lo).all() and (part_hi <= head_hi).all():
+                part_probe = (part.probe - c) @ r
+                return bool(winding_numbers(part_probe[None], self._head_triangles)[0] > 0.5)
         return False
 
     def _depth(self, part: _Part, c: np.ndarray, r: np.ndarray) -> float:

@@ -459,6 +459,40 @@ def test_reference_sees_a_part_wholly_inside_the_head(sample_head):
     assert value < 0 and hit == ["inner"]
 
 
+def test_nested_quick_proofs_give_the_answers_of_every_vertex(sample_head):
+    """``_nested`` rules out boxes with a few extreme vertices and a bound on the head's span
+    before testing every vertex: on poses where each body sometimes holds the other (a small
+    block inside the body, the head inside a large block), its answers are those of the test
+    over every vertex."""
+    from ncfix.geometry.distance import winding_numbers
+
+    parts = {"small": trimesh.creation.box(bounds=[[-2.0, -2.0, 60.0], [2.0, 2.0, 64.0]]),
+             "large": trimesh.creation.box(bounds=[[-100.0, -100.0, -20.0], [100.0, 100.0, 160.0]])}
+    ref = ExactReference(sample_head, parts)
+    verts, tris = np.asarray(sample_head.vertices), np.asarray(sample_head.triangles)
+
+    def every_vertex(part, c, r):
+        world = c + verts @ r.T
+        lo, hi = part.mesh.bounds
+        if (world.min(axis=0) >= lo).all() and (world.max(axis=0) <= hi).all():
+            if winding_numbers(world[:1], np.asarray(part.mesh.triangles))[0] > 0.5:
+                return True
+        if (lo >= world.min(axis=0)).all() and (hi <= world.max(axis=0)).all():
+            return bool(winding_numbers(((part.probe - c) @ r)[None], tris)[0] > 0.5)
+        return False
+
+    rng = np.random.default_rng(11)
+    answers = []
+    for _ in range(400):
+        n = rng.normal(size=3) + [0.0, 0.0, 2.0]
+        r = rotation_from_z(n / np.linalg.norm(n))
+        c = rng.normal(size=3) * [30.0, 30.0, 25.0] + [0.0, 0.0, 10.0]
+        for part in ref.parts:
+            answers.append(ref._nested(part, c, r))
+            assert answers[-1] == every_vertex(part, c, r)
+    assert 40 < sum(answers) < len(answers) - 40
+
+
 def test_bead_clearance_agrees_with_trimesh_signed_distance(sample_head):
     ref = ExactReference(sample_head, {}, tip_allowance_mm=1.0)
     rng = np.random.default_rng(4)
