@@ -332,9 +332,10 @@ def test_bead_field_is_a_lower_bound_on_the_distance_to_the_beads():
 
 
 def test_stamping_gives_every_cell_the_least_value_of_the_chords_that_reach_it():
-    """The compiled stamp (which skips the square root of a cell no chord can lower) leaves every
-    cell of the fine grid at the least of its chords' values, each computed in full, overlapping
-    chords and chords through cells already at 0 included."""
+    """The compiled stamp (which walks each column of cells from the chord's nearest height up and
+    down, stopping at the first cell out of reach) leaves every cell of the fine grid at the least
+    of its chords' values, each computed in full: overlapping chords, vertical and level ones,
+    single beads, cells already at 0."""
     from ncfix.collision.deposit import FIELD_SLACK_MM, FINE_LEVELS, _stamp_kernels
 
     rng = np.random.default_rng(8)
@@ -342,6 +343,8 @@ def test_stamping_gives_every_cell_the_least_value_of_the_chords_that_reach_it()
     lo = np.array([-4, -4, -4], dtype=np.int64)
     a = rng.uniform(0.0, 8.0, (40, 3))
     b = a + rng.normal(0.0, 2.0, (40, 3))
+    b[1::5, :2] = a[1::5, :2]  # vertical chords
+    b[2::5, 2] = a[2::5, 2]  # level chords
     b[::7] = a[::7]  # single beads
     dev = rng.uniform(0.0, 0.01, 40)
     grid = np.full((32, 32, 32), FINE_LEVELS, dtype=np.uint8)

@@ -628,12 +628,26 @@ def _stamp_chords_py(grid, lo, h, a, b, dev, radius, step, levels, slack):  # pr
         j1 = min(int(np.ceil((max(a1, b[s, 1]) + reach) / h)) - lo[1], ny - 1)
         k0 = max(int(np.floor((min(a2, b[s, 2]) - reach) / h)) - lo[2], 0)
         k1 = min(int(np.ceil((max(a2, b[s, 2]) + reach) / h)) - lo[2], nz - 1)
+        flat2 = d0 * d0 + d1 * d1
+        inv_flat = 1.0 / flat2 if flat2 > 0.0 else 0.0
         for i in range(i0, i1 + 1):
             p0 = (i + lo[0]) * h - a0
             for j in range(j0, j1 + 1):
                 p1 = (j + lo[1]) * h - a1
                 base = p0 * d0 + p1 * d1
-                for k in range(k0, k1 + 1):
+                # Along this column of cells the squared distance to the chord is convex in z, least
+                # at the height of the chord's point nearest the column (in plan): the cells within
+                # reach are one run about it. They are found from there up and down, each side
+                # stopping at its first cell out of reach (the cells tested are those of the box).
+                tc = min(max(base * inv_flat, 0.0), 1.0)
+                kc = min(max(int(np.floor((a2 + tc * d2) / h)) - lo[2], k0), k1)
+                k, dk = kc, 1
+                while True:
+                    if k > k1 or k < k0:  # this side's end of the box
+                        if dk < 0:
+                            break
+                        k, dk = kc - 1, -1
+                        continue
                     p2 = (k + lo[2]) * h - a2
                     t = (base + p2 * d2) * inv
                     t = min(max(t, 0.0), 1.0)
@@ -648,6 +662,12 @@ def _stamp_chords_py(grid, lo, h, a, b, dev, radius, step, levels, slack):  # pr
                             u = int(d * inv_step)
                         if u < grid[i, j, k]:
                             grid[i, j, k] = u
+                    elif dk < 0:
+                        break
+                    elif k > kc:  # the upper side is done: the lower one from kc - 1
+                        k, dk = kc - 1, -1
+                        continue
+                    k += dk
 
 
 def _stamp_coarse_py(grid, occupied, lo, cells, offsets, values):  # pragma: no cover - compiled
