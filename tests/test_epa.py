@@ -11,8 +11,8 @@ import pytest
 import trimesh
 
 from ncfix.correct.decompose import cache_key, decompose
-from ncfix.correct.epa import EpaModel
-from ncfix.geometry.frames import angle_between_deg, minimal_rotation, rotation_from_z
+from ncfix.correct.epa import EpaModel, _angle_deg, _boxes_met, _tilt_axis, _turned
+from ncfix.geometry.frames import angle_between_deg, axis_rotation, minimal_rotation, rotation_from_z
 from ncfix.reference import ExactReference
 
 REPO = Path(__file__).resolve().parents[1]
@@ -319,6 +319,45 @@ def test_beads_near_keeps_the_beads_within_a_radius_of_the_clipped_hull(tmp_path
     got = model._beads_near(c, r, beads)
     assert 50 < len(got) < 4000
     assert np.array_equal(got, beads[boxed & inside])
+    # In the order the strategy gives them (one per cell, neighbours together), where the face
+    # that cleared the bead before is tried first.
+    order = np.lexsort(np.floor(beads / 2.0).T[::-1])
+    assert np.array_equal(model._beads_near(c, r, beads[order]), beads[order][(boxed & inside)[order]])
+
+
+def test_pieces_met_are_those_whose_boxes_meet_the_placed_hull_box(tmp_path):
+    """The compiled broad phase picks exactly the pieces whose boxes meet the box of the head's
+    hull placed at the pose (numpy formulation), down to boxes 1e-9 mm apart or overlapping."""
+    model = EpaModel(cylinder_head(), [], cache_dir=tmp_path)
+    rng = np.random.default_rng(5)
+    points = model._head_points
+    for _ in range(50):
+        c = rng.uniform(-20, 20, 3)
+        r = rotation_from_z(rng.normal(size=3) * [0.3, 0.3, 0.0] + Z)
+        world = c + points @ r.T
+        lo, hi = world.min(axis=0), world.max(axis=0)
+        piece_lo = rng.uniform(-40, 40, (200, 3))
+        piece_hi = piece_lo + rng.uniform(0, 20, (200, 3))
+        piece_hi[:5] = lo + 1e-9  # overlapping at a corner
+        piece_lo[5:10] = hi + 1e-9  # just apart
+        want = np.flatnonzero(((piece_lo <= hi) & (piece_hi >= lo)).all(axis=1))
+        assert 5 <= len(want) < 200 and not np.isin(np.arange(5, 10), want).any()
+        assert np.array_equal(_boxes_met(points, c, r, piece_lo, piece_hi), want)
+
+
+def test_walk_arithmetic_matches_the_matrix_formulation():
+    """The lami walk's scalar steps are ``axis_rotation``, ``angle_between_deg`` and the
+    normalised cross product, to rounding."""
+    rng = np.random.default_rng(6)
+    for _ in range(200):
+        u, n, d = (v / np.linalg.norm(v) for v in rng.normal(size=(3, 3)))
+        angle = rng.uniform(-0.2, 0.2)
+        turned = _turned(tuple(u), np.cos(angle), np.sin(angle), tuple(n))
+        assert np.abs(np.array(turned) - axis_rotation(u, np.array([angle]))[0] @ n).max() < 1e-15
+        assert _angle_deg(tuple(n), turned) == pytest.approx(angle_between_deg(n, np.array(turned)), abs=1e-12)
+        cross = np.cross(n, 3.0 * d)
+        assert np.abs(_tilt_axis(n, 3.0 * d) - cross / np.linalg.norm(cross)).max() < 1e-15
+    assert _tilt_axis(Z, -2.0 * Z) is None
 
 
 def test_bead_exit_vectors_match_coal_epa():

@@ -298,9 +298,8 @@ def test_the_head_is_tilted_away_from_what_it_printed(made, head):
     print(f"\nepa deposit: {made[-1].last}")
 
 
-def test_walks_run_in_step_get_the_answers_they_get_alone(made, monkeypatch):
-    # The required tilts' walks run in step (one Episode.free call per round for all of them):
-    # each must ask for and get exactly what it gets alone, in one ball or none, found or not.
+def _wall_deposit_solver(monkeypatch):
+    """The first episode solver of a fix of ``_wall_deposit_program`` (after it ran)."""
     from ncfix.correct import epa_strategy
 
     solvers = []
@@ -308,7 +307,15 @@ def test_walks_run_in_step_get_the_answers_they_get_alone(made, monkeypatch):
     monkeypatch.setattr(epa_strategy._EpisodeSolver, "run", lambda self: solvers.append(self) or run(self))
     data, _, _ = _wall_deposit_program()
     _run(data, deposit_codes=("M3", "M5"), max_tilt=20.0, max_step=4.0)
-    solver = solvers[0]
+    return solvers[0]
+
+
+def test_walks_run_in_step_get_the_answers_they_get_alone(made, monkeypatch):
+    # The required tilts' walks run in step (one Episode.free call per round for all of them):
+    # each must ask for and get exactly what it gets alone, in one ball or none, found or not.
+    from ncfix.correct import epa_strategy
+
+    solver = _wall_deposit_solver(monkeypatch)
     levels = [int(l) for l in np.nonzero(solver.ep.is_colliding)[0]]
     assert len(levels) >= 4
     asks = ([(l, None, None) for l in levels] + [(l, np.array([0.0, 0.05]), None) for l in levels]
@@ -326,6 +333,17 @@ def test_walks_run_in_step_get_the_answers_they_get_alone(made, monkeypatch):
         assert found is None or np.array_equal(found, found_alone)
     kinds = [found is None for found, _ in together]
     assert any(kinds) and not all(kinds)
+
+
+def test_the_walk_gets_the_rotations_orient_gives(made, monkeypatch):
+    # The walk asks for rotations alone (``Episode.rotations``): on a vector machine it skips the
+    # words, and must give exactly ``orient``'s rotations, unnormalised vectors included.
+    ep = _wall_deposit_solver(monkeypatch).ep
+    rng = np.random.default_rng(2)
+    levels = rng.integers(0, len(ep.N0), 64)
+    N = ep.N0[levels] + rng.normal(0.0, 0.3, (64, 3))
+    N *= rng.uniform(0.5, 3.0, (64, 1))
+    assert ep.is_vector and np.array_equal(ep.rotations(levels, N), ep.orient(levels, N)[1])
 
 
 def test_blocks_the_walk_leaves_colliding_are_searched_by_the_graph(made, head, tmp_path, monkeypatch):

@@ -27,6 +27,7 @@ the answer is as safe as that checker.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass, field
 from itertools import islice
@@ -149,11 +150,8 @@ class EpaModel:
         c = np.asarray(C, dtype=np.float64).reshape(3)
         r = np.asarray(R, dtype=np.float64).reshape(3, 3)
         pose = coal.Transform3s(r, c)
-        world = c + self._head_points @ r.T
-        lo, hi = world.min(axis=0), world.max(axis=0)
-        near = np.flatnonzero(((self._piece_lo <= hi) & (self._piece_hi >= lo)).all(axis=1))
         vectors, bodies = [], []
-        for i in near:
+        for i in _boxes_met(self._head_points, c, r, self._piece_lo, self._piece_hi):
             v = self._penetration(self._head, pose, self._pieces[i], self._identity)
             if v is not None:
                 vectors.append(v)
@@ -163,7 +161,7 @@ class EpaModel:
             exits = self.bead_exits(c, r, self._beads_near(c, r, beads_mm))
             exits = exits[np.linalg.norm(exits, axis=1) > _TINY]
             if len(exits):
-                vectors.extend(exits)
+                vectors.append(exits)
                 bodies.append("deposit")
         return _combine(vectors, bodies)
 
@@ -291,22 +289,31 @@ class EpaModel:
         current direction. The path depends on the hull model only, so it can be generated ahead
         of the ``is_free`` batches.
         """
-        step = np.radians(step_deg)
-        direction = start.vector / np.linalg.norm(start.vector)
+        # Scalar arithmetic: a step is a few dozen flops, numpy's per-call overhead would be most
+        # of the walk's time (the hull model's tests aside).
+        step = math.radians(step_deg)
+        cos_step, sin_step = math.cos(step), math.sin(step)
+        limit = max_tilt_deg + 1e-9
+        first = tuple(float(v) for v in n0)
+        direction = tuple(float(v) for v in start.vector / np.linalg.norm(start.vector))
         weight = float(np.linalg.norm(start.vector))
-        n = n0
+        axis = tuple(float(v) for v in axis)
+        n = first
         for _ in range(_LAMI_STEP_FACTOR * max(1, int(np.ceil(max_tilt_deg / step_deg)))):
-            n = axis_rotation(axis, np.array([step]))[0] @ n
-            if angle_between_deg(n0, n) > max_tilt_deg + 1e-9:
+            n = _turned(axis, cos_step, sin_step, n)
+            if _angle_deg(first, n) > limit:
                 return
-            yield n
-            e = self.extraction_vector(c, _rotation(rotation_of, n), beads_mm).vector
-            depth = float(np.linalg.norm(e))
+            normal = np.array(n)
+            yield normal
+            e = self.extraction_vector(c, _rotation(rotation_of, normal), beads_mm).vector
+            ex, ey, ez = float(e[0]), float(e[1]), float(e[2])
+            depth = math.sqrt(ex * ex + ey * ey + ez * ez)
             if depth > _TINY:
-                resultant = weight * direction + e
-                direction = resultant / np.linalg.norm(resultant)
+                rx, ry, rz = weight * direction[0] + ex, weight * direction[1] + ey, weight * direction[2] + ez
+                size = math.sqrt(rx * rx + ry * ry + rz * rz)
+                direction = (rx / size, ry / size, rz / size)
                 weight = depth
-            turned = _tilt_axis(n, direction)
+            turned = _cross_unit(n, direction)
             axis = axis if turned is None else turned
 
 
@@ -337,10 +344,11 @@ def _clip_hull(hull: trimesh.Trimesh, height_mm: float) -> trimesh.Trimesh:
 
 
 def _combine(vectors: list[np.ndarray], bodies: list[str]) -> Extraction:
-    """E = Σ w_i V_i with w_i = |V_i| / Σ|V_k| (seed, "EPA Algorithm")."""
+    """E = Σ w_i V_i with w_i = |V_i| / Σ|V_k| (seed, "EPA Algorithm"); ``vectors``: (3,) vectors
+    and (k, 3) blocks of them."""
     if not vectors:
         return Extraction(np.zeros(3), 0.0, bodies)
-    v = np.asarray(vectors, dtype=np.float64)
+    v = np.vstack(vectors)
     lengths = np.linalg.norm(v, axis=1)
     e = (lengths[:, None] * v).sum(axis=0) / lengths.sum()
     return Extraction(e, float(lengths.max()), bodies)
@@ -356,9 +364,34 @@ def _tilt_axis(n: np.ndarray, direction: np.ndarray) -> np.ndarray | None:
     Rotating n by a small angle about n × d moves n toward d's perpendicular part, and with it
     every head point above the tip: the head moves along d.
     """
-    axis = np.cross(n, direction)
-    norm = float(np.linalg.norm(axis))
-    return axis / norm if norm > _TINY * max(1.0, float(np.linalg.norm(direction))) else None
+    axis = _cross_unit(tuple(float(v) for v in n), tuple(float(v) for v in direction))
+    return None if axis is None else np.array(axis)
+
+
+def _cross_unit(n: tuple, d: tuple) -> tuple | None:
+    """``_tilt_axis`` on (x, y, z) tuples."""
+    x, y, z = n[1] * d[2] - n[2] * d[1], n[2] * d[0] - n[0] * d[2], n[0] * d[1] - n[1] * d[0]
+    norm = math.sqrt(x * x + y * y + z * z)
+    if norm > _TINY * max(1.0, math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])):
+        return x / norm, y / norm, z / norm
+    return None
+
+
+def _turned(u: tuple, cos_a: float, sin_a: float, n: tuple) -> tuple:
+    """n (x, y, z) rotated about the unit axis u by the angle of (cos_a, sin_a), right-handed
+    (``axis_rotation``'s matrix, applied)."""
+    ux, uy, uz = u
+    x, y, z = n
+    o = 1.0 - cos_a
+    return ((cos_a + o * (ux * ux)) * x + (-sin_a * uz + o * (ux * uy)) * y + (sin_a * uy + o * (ux * uz)) * z,
+            (sin_a * uz + o * (uy * ux)) * x + (cos_a + o * (uy * uy)) * y + (-sin_a * ux + o * (uy * uz)) * z,
+            (-sin_a * uy + o * (uz * ux)) * x + (sin_a * ux + o * (uz * uy)) * y + (cos_a + o * (uz * uz)) * z)
+
+
+def _angle_deg(a: tuple, b: tuple) -> float:
+    """``angle_between_deg`` of two (x, y, z) unit vectors."""
+    x, y, z = a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
+    return math.degrees(math.atan2(math.sqrt(x * x + y * y + z * z), a[0] * b[0] + a[1] * b[1] + a[2] * b[2]))
 
 
 def _tilt_angles(max_tilt_deg: float, step_deg: float) -> np.ndarray:
@@ -406,6 +439,7 @@ def _within_hull(beads, c, r, lo, hi, normals, offsets, rad):  # pragma: no cove
     """(m,) bool: bead centres whose head-frame point R^T (b - c) lies in the hull's box grown by
     rad and less than rad outside every face plane (a bead stops at the first plane it clears)."""
     out = np.zeros(beads.shape[0], np.bool_)
+    last = 0
     for i in range(beads.shape[0]):
         ex, ey, ez = beads[i, 0] - c[0], beads[i, 1] - c[1], beads[i, 2] - c[2]
         x = r[0, 0] * ex + r[1, 0] * ey + r[2, 0] * ez
@@ -413,13 +447,39 @@ def _within_hull(beads, c, r, lo, hi, normals, offsets, rad):  # pragma: no cove
         z = r[0, 2] * ex + r[1, 2] * ey + r[2, 2] * ez
         if not (lo[0] - rad < x < hi[0] + rad and lo[1] - rad < y < hi[1] + rad and lo[2] - rad < z < hi[2] + rad):
             continue
+        # The face that cleared the bead before is tried first: neighbouring beads (the caller's
+        # are in cells) are mostly cleared by the same face. The answer does not depend on it.
+        if normals[last, 0] * x + normals[last, 1] * y + normals[last, 2] * z - offsets[last] >= rad:
+            continue
         inside = True
         for f in range(normals.shape[0]):
             if normals[f, 0] * x + normals[f, 1] * y + normals[f, 2] * z - offsets[f] >= rad:
                 inside = False
+                last = f
                 break
         out[i] = inside
     return out
+
+
+def _boxes_met(points, c, r, lo, hi):  # pragma: no cover - compiled
+    """Indices of the boxes (lo, hi: (k, 3)) that meet the bounding box of the points (m, 3)
+    placed at tip c, rotation r (world = c + r @ p)."""
+    wlo = np.full(3, np.inf)
+    whi = np.full(3, -np.inf)
+    for i in range(points.shape[0]):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        for a in range(3):
+            w = c[a] + r[a, 0] * px + r[a, 1] * py + r[a, 2] * pz
+            wlo[a] = min(wlo[a], w)
+            whi[a] = max(whi[a], w)
+    out = np.empty(lo.shape[0], np.int64)
+    k = 0
+    for j in range(lo.shape[0]):
+        if (lo[j, 0] <= whi[0] and lo[j, 1] <= whi[1] and lo[j, 2] <= whi[2]
+                and hi[j, 0] >= wlo[0] and hi[j, 1] >= wlo[1] and hi[j, 2] >= wlo[2]):
+            out[k] = j
+            k += 1
+    return out[:k]
 
 
 def _sphere_exits(points, normals, offsets, triangles, rad):  # pragma: no cover - compiled
@@ -462,6 +522,7 @@ try:
     from numba import njit as _njit
 
     _within_hull = _njit(cache=True, nogil=True)(_within_hull)
+    _boxes_met = _njit(cache=True, nogil=True)(_boxes_met)
     _sphere_exits = _njit(cache=True, nogil=True)(_sphere_exits)
 except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
     pass

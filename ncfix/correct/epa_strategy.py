@@ -686,7 +686,7 @@ class _EpisodeSolver:
 
     def _rotation_of(self, l: int):
         ep = self.ep
-        return lambda normals: ep.orient(np.full(len(normals), l), np.asarray(normals).reshape(-1, 3))[1]
+        return lambda normals: ep.rotations(np.full(len(normals), l), np.asarray(normals).reshape(-1, 3))
 
     def _beads(self, l: int) -> np.ndarray | None:
         """Bead centres the level sees, near its tip: the store's and the episode's laid up to it."""

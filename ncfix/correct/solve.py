@@ -151,6 +151,12 @@ class Episode:
                     R[sel] = self.kin.forward(words[sel], tcp=flag)[2]
         return words, R, ok
 
+    def rotations(self, level: np.ndarray, N: np.ndarray) -> np.ndarray:
+        """(m, 3, 3): ``orient``'s head rotations alone (a vector machine needs no words for them)."""
+        if self.is_vector:
+            return minimal_rotation(N / np.linalg.norm(N, axis=1, keepdims=True))
+        return self.orient(level, N)[1]
+
     def free(self, level: np.ndarray, N: np.ndarray, beads: bool = True) -> np.ndarray:
         """(m,) True where orientation N at that level is reachable and its end pose is free of the
         parts and of the (programmed) beads laid up to that level: the bounds first, the exact
