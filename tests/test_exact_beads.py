@@ -101,5 +101,13 @@ def test_bead_cells_find_every_bead_within_the_ball():
             order = [index[tuple(p)] for p in got[first:first + m]]
             assert order == sorted(order)
             first += m
+    # ``gather`` is take(near): balls holding every cell take them all without a query.
+    reach = np.linalg.norm(np.maximum(np.abs(centre.min(axis=0)), np.abs(centre.max(axis=0))))
+    for r in (5.0, 40.0, reach - 1.0, reach + 1e-6, reach + 50.0):
+        for c in (np.zeros(3), np.array([3.0, -2.0, 1.0])):
+            want = cells.take(cells.near(c, r))
+            got = cells.gather(c, r)
+            assert all(np.array_equal(a, b) for a, b in zip(got, want))
+    assert len(cells.gather(np.zeros(3), reach + 50.0)[1]) == len(counts)
     empty = BeadCells(np.zeros((0, 3)), 4.0)
-    assert len(empty.take()[0]) == 0
+    assert len(empty.take()[0]) == 0 and len(empty.gather(np.zeros(3), 10.0)[0]) == 0

@@ -485,7 +485,7 @@ class Checker:
         if got is not None and float(np.linalg.norm(centre - got[0])) + radius <= got[1]:
             return got[2]
         radius = radius + TIP_CACHE_SLACK_MM
-        groups = [level.take(level.near(centre, radius)) for level in
+        groups = [level.gather(centre, radius) for level in
                   (store.cells(BEAD_CELL_MM) if store.count else [])]
         if len(pending):
             seen = pending[pending_seq <= key[0]]

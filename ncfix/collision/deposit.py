@@ -220,21 +220,23 @@ class BeadStore:
 
 
 class BeadCells:
-    """Beads grouped in cubes of ``cell_mm``: each cell's beads (consecutive in ``order``, in the
+    """Beads grouped in cubes of ``cell_mm``: each cell's beads (consecutive in ``beads``, in the
     order given: laying order), its centre (their mean) and radius (the farthest of them from it),
     and a k-d tree of the centres (built on the first ``near``)."""
 
     def __init__(self, points_mm: np.ndarray, cell_mm: float):
-        self.points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
-        _, self.order, self.counts = group_cells(np.floor(self.points / cell_mm).astype(np.int64))
+        points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+        _, order, self.counts = group_cells(np.floor(points / cell_mm).astype(np.int64))
+        self.beads = points[order]
         self.starts = np.concatenate([[0], np.cumsum(self.counts)[:-1]]).astype(np.int64)
-        if len(self.points):
-            ordered = self.points[self.order]
-            self.centre = np.add.reduceat(ordered, self.starts, axis=0) / self.counts[:, None]
-            off = np.linalg.norm(ordered - np.repeat(self.centre, self.counts, axis=0), axis=1)
+        if len(points):
+            self.centre = np.add.reduceat(self.beads, self.starts, axis=0) / self.counts[:, None]
+            off = np.linalg.norm(self.beads - np.repeat(self.centre, self.counts, axis=0), axis=1)
             self.radius = np.maximum.reduceat(off, self.starts)
+            self._lo, self._hi = self.centre.min(axis=0), self.centre.max(axis=0)
         else:
             self.centre, self.radius = np.zeros((0, 3)), np.zeros(0)
+            self._lo = self._hi = np.zeros(3)
         self.widest = float(self.radius.max()) if len(self.radius) else 0.0
         self._tree: cKDTree | None = None
 
@@ -246,19 +248,27 @@ class BeadCells:
         far = np.linalg.norm(self.centre[idx] - centre_mm, axis=1) - self.radius[idx]
         return idx[far <= radius_mm]
 
+    def gather(self, centre_mm: np.ndarray, radius_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``take(near(centre_mm, radius_mm))``. A ball that holds every cell centre (the farthest
+        corner of their box closer than the radius) gets every cell without a query: the same
+        cells, in the same order, as ``near`` would give."""
+        corner = np.maximum(np.abs(self._lo - centre_mm), np.abs(self._hi - centre_mm))
+        if float(np.sqrt(corner @ corner)) < radius_mm:
+            return self.take()
+        return self.take(self.near(centre_mm, radius_mm))
+
     def take(self, cells: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(beads of these cells (m, 3), cell by cell, each in the order given; beads per cell (k,);
-        centres (k, 3); radii (k,)); every cell when None."""
+        centres (k, 3); radii (k,)); every cell when None (the arrays kept here: not to be written)."""
         if cells is None:
-            return self.points[self.order], self.counts, self.centre, self.radius
+            return self.beads, self.counts, self.centre, self.radius
         counts = self.counts[cells]
         offs = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
-        return self.points[self.order[np.repeat(self.starts[cells], counts) + offs]], counts, \
-            self.centre[cells], self.radius[cells]
+        return self.beads[np.repeat(self.starts[cells], counts) + offs], counts, self.centre[cells], self.radius[cells]
 
     @property
     def nbytes(self) -> int:
-        return int(self.order.nbytes + self.counts.nbytes + self.starts.nbytes + self.centre.nbytes
+        return int(self.beads.nbytes + self.counts.nbytes + self.starts.nbytes + self.centre.nbytes
                    + self.radius.nbytes + (self.centre.nbytes if self._tree is not None else 0))
 
 
