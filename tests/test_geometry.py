@@ -568,3 +568,17 @@ def test_flat_cell_keys_group_as_numpy_unique_rows(n):
     assert (cell_of == want_of.reshape(-1)).all() and (counts == want_counts).all()
     assert (members == np.argsort(want_of.reshape(-1), kind="stable")).all()
     assert (first_of_each_cell(rows) == np.sort(np.unique(rows, axis=0, return_index=True)[1])).all()
+
+
+@pytest.mark.parametrize("span", [1, 6, 1000, 1 << 40])
+def test_first_of_each_cell_is_numpy_unique_first_index(span):
+    """The hashed first-of-each-cell gives np.unique's first indices, ascending: many repeats
+    (a few cells), few, and keys too wide for one int64 (the rows themselves)."""
+    from ncfix.geometry.cells import first_of_each_cell
+
+    rng = np.random.default_rng(span % 97)
+    for n in (0, 1, 2, 20000):
+        rows = rng.integers(-span, span, (n, 3))
+        want = np.sort(np.unique(rows, axis=0, return_index=True)[1]) if n else np.zeros(0, dtype=np.int64)
+        got = first_of_each_cell(rows)
+        assert got.dtype == np.int64 and np.array_equal(got, want)

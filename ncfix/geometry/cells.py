@@ -49,11 +49,43 @@ def _keys(rows, lo, s1, s2):  # pragma: no cover - compiled
     return out
 
 
+# Fibonacci hashing's multiplier (2^64 / golden ratio, as a signed int64): spreads nearby keys.
+_HASH = -7046029254386353131
+
+
+def _first_of_keys(key):  # pragma: no cover - compiled
+    """Indices (ascending) of the first occurrence of each distinct key, in one pass: a table of
+    first indices, open addressing with linear probing (np.unique would sort the keys)."""
+    n = key.shape[0]
+    size = 16
+    while size < 2 * n:
+        size *= 2
+    mask = size - 1
+    table = np.full(size, -1, np.int64)
+    out = np.empty(n, np.int64)
+    k = 0
+    for i in range(n):
+        v = key[i]
+        h = ((v * _HASH) >> 20) & mask
+        while True:
+            j = table[h]
+            if j < 0:
+                table[h] = i
+                out[k] = i
+                k += 1
+                break
+            if key[j] == v:
+                break
+            h = (h + 1) & mask
+    return out[:k]
+
+
 try:
     from numba import njit as _njit
 
     _box = _njit(cache=True, nogil=True)(_box)
     _keys = _njit(cache=True, nogil=True)(_keys)
+    _first_of_keys = _njit(cache=True, nogil=True)(_first_of_keys)
 except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
     pass
 
@@ -83,4 +115,4 @@ def first_of_each_cell(rows: np.ndarray) -> np.ndarray:
     key = flat_keys(rows)
     if key is None:
         return np.sort(np.unique(rows, axis=0, return_index=True)[1])
-    return np.sort(np.unique(key, return_index=True)[1])
+    return _first_of_keys(key)
