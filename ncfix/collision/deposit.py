@@ -106,7 +106,8 @@ class BeadStore:
         self.radius_mm = float(radius_mm)
         self.exact_max = int(exact_max if exact_max is not None else EXACT_BEADS_MAX)
         self.level_max = max(1, self.exact_max // 4)
-        # [points (m, 3) float64 in laying order, cKDTree or None, {cell mm: BeadCells}], oldest first
+        # [points (m, 3) float64 in laying order, cKDTree or None, {cell mm: BeadCells},
+        #  the points in the tree's order or None (``near``)], oldest first
         self._levels: list[list] = []
         self._open: list[np.ndarray] = []  # beads not in a level yet (newest)
         self._open_n = 0
@@ -160,7 +161,7 @@ class BeadStore:
         while self._levels and len(self._levels[-1][0]) <= len(pts) and \
                 len(self._levels[-1][0]) + len(pts) <= self.level_max:
             pts = np.concatenate([self._levels.pop()[0], pts])
-        self._levels.append([pts, None, {}])
+        self._levels.append([pts, None, {}, None])
 
     def _retire(self) -> None:
         """Move the oldest levels into the old field until at most ``exact_max`` beads stay exact,
@@ -190,6 +191,26 @@ class BeadStore:
                 level[1] = cKDTree(level[0], leafsize=16, balanced_tree=False, compact_nodes=False)
         return [(level[1], level[0]) for level in self._levels]
 
+    def near(self, centre_mm: np.ndarray, radius_mm: float) -> list[np.ndarray]:
+        """Per exact level, oldest first: its centres within ``radius_mm`` of the point, in the
+        order of its tree's ball query (``cKDTree.query_ball_point``). A ball that holds a tree's
+        whole box (with a margin for rounding) gets every centre without a query, in the order
+        the query would visit them: its leaves in turn, the tree's ``indices``."""
+        centre = np.asarray(centre_mm, dtype=np.float64).reshape(3)
+        self.trees()  # built where missing
+        out = []
+        for level in self._levels:
+            pts, tree = level[0], level[1]
+            corner = np.maximum(np.abs(tree.mins - centre), np.abs(tree.maxes - centre))
+            if float(corner @ corner) < radius_mm * radius_mm * (1.0 - 1e-9):
+                if level[3] is None:
+                    level[3] = pts[tree.indices]
+                out.append(level[3])
+            else:
+                found = tree.query_ball_point(centre, radius_mm)
+                out.append(pts[np.asarray(found, dtype=np.int64)])
+        return out
+
     def cells(self, cell_mm: float) -> list["BeadCells"]:
         """The exact levels' beads grouped in cubes of ``cell_mm`` (``BeadCells``), oldest first
         (built here when missing, kept with their level)."""
@@ -205,7 +226,8 @@ class BeadStore:
     def nbytes(self) -> int:
         fields = sum(f.nbytes for f in (self._field, self.old) if f is not None)
         exact = sum(p.nbytes * (2 if tree is not None else 1) + sum(c.nbytes for c in cells.values())
-                    for p, tree, cells in self._levels) + self._open_n * 24
+                    + (ordered.nbytes if ordered is not None else 0)
+                    for p, tree, cells, ordered in self._levels) + self._open_n * 24
         return int(exact + fields)
 
     # -- queries -----------------------------------------------------------------------------

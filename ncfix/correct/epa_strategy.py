@@ -697,8 +697,7 @@ class _EpisodeSolver:
             c = ep.C0[l]
             found = []
             if ep.stage.store.count:
-                for tree, pts in ep.stage.store.trees():
-                    found.append(pts[np.asarray(tree.query_ball_point(c, self._reach_mm), dtype=np.int64)])
+                found.extend(ep.stage.store.near(c, self._reach_mm))
             mine = ep.bead_pts[ep.bead_seq <= l]
             found.append(mine[np.linalg.norm(mine - c, axis=1) <= self._reach_mm])
             beads = np.concatenate(found)
