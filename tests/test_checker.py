@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ncfix.collision.checker import Checker
+from ncfix.collision.checker import Checker, _balls_box
 from ncfix.collision.stage import CheckStage
 from ncfix.collision.deposit import BeadStore, DepositRule, choose_rule, depositing
 from ncfix.collision.grid import build_distance_grid
@@ -690,9 +690,12 @@ def test_compiled_descent_decides_like_the_torch_descent(checker, bead_checker, 
             assert 0 < want.sum() < len(P)
             assert np.array_equal(got, want)
         want = ck._failing_nodes(tree, bound, t(P), t(Q), t(lin), t(ang), CANDIDATE_LEVEL)
-        got = descent.failing_nodes(tree.host, bound, P, Q, lin, ang, ck.clearance_mm, CANDIDATE_LEVEL)
+        got = descent.failing_nodes(tree.host, bound, P, Q, lin, ang, ck.clearance_mm, CANDIDATE_LEVEL, 1.0)
         assert len(want[0]) > len(P)
         assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+        # the box of the failing nodes' balls (widened by the pad), as numpy computes it, to rounding
+        box = _balls_box(tree.host, P, Q, lin, ang, want[0], want[1], 1.0 + ck.clearance_mm)
+        assert np.allclose(got[2], box, rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("threads", ["1", "3"])

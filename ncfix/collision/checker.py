@@ -84,6 +84,9 @@ REFINE_LEVELS = 2
 ALWAYS_SEEN = np.iinfo(np.int64).min
 # Level of the tree whose failing nodes fetch the candidate beads of an undecided pose (~2 mm).
 CANDIDATE_LEVEL = 5
+# The bucketed region of the exact bead test is the box of the failing nodes' query balls widened
+# by this (mm): the bead kernel places each ball in its own arithmetic (rounding: ~1e-13 mm).
+BOX_SLACK_MM = 1e-9
 
 
 @contextmanager
@@ -616,9 +619,10 @@ class Checker:
         n = len(C)
         hit = np.zeros(n, dtype=bool)
         clearance = np.full(n, np.inf)
+        pad = self.bead_radius_mm
         if self.compiled:
-            pose, node = descent.failing_nodes(self.dep_tree.host, bead_field.lower_bound, C, R, lin, ang,
-                                               self.clearance_mm, CANDIDATE_LEVEL)
+            pose, node, box = descent.failing_nodes(self.dep_tree.host, bead_field.lower_bound, C, R, lin, ang,
+                                                    self.clearance_mm, CANDIDATE_LEVEL, pad)
         else:
             pose, node = [], []
             for a in range(0, n, POSE_BATCH):
@@ -630,17 +634,17 @@ class Checker:
                 pose.append(p + a)
                 node.append(q)
             pose, node = np.concatenate(pose), np.concatenate(node)
+            box = _balls_box(self.dep_tree.host, C, R, lin, ang, pose, node, pad + self.clearance_mm)
         if len(pose) == 0:
             return hit, clearance
         order = np.argsort(pose, kind="stable")
         pose, node = pose[order], node[order]
         host = self.dep_tree.host
         node_c, radii, reach = host.center[node], host.radius[node], host.reach[node]
-        # The region the failing nodes' query balls cover: only the beads there are bucketed.
-        centers = C[pose] + np.einsum("nij,nj->ni", R[pose], node_c)
-        query_r = (radii + lin[pose] + ang[pose] * reach + self.bead_radius_mm + self.clearance_mm)[:, None]
         beads, bseq = self._bead_arrays(store, pending, pending_seq)
-        buckets = BeadBuckets(beads, bseq, (centers - query_r).min(axis=0), (centers + query_r).max(axis=0))
+        # Only the beads in the region the failing nodes' query balls cover are bucketed (with a
+        # slack: the bead kernel places the balls in arithmetic of its own).
+        buckets = BeadBuckets(beads, bseq, box[0] - BOX_SLACK_MM, box[1] + BOX_SLACK_MM)
         hit, depth, candidates, tested = first_bead_hits(
             C, R, lin, ang, seq, pose, node_c, radii, reach, buckets, self.head_grid, self.near_head,
             bead_r=self.bead_radius_mm, clearance=self.clearance_mm, allowance=self.tip_allowance_mm,
@@ -663,6 +667,17 @@ class Checker:
             return kept, np.full(len(kept), ALWAYS_SEEN, dtype=np.int64)
         return (np.concatenate([kept, pending]),
                 np.concatenate([np.full(len(kept), ALWAYS_SEEN, dtype=np.int64), np.asarray(pending_seq, np.int64)]))
+
+
+def _balls_box(host, C, R, lin, ang, pose, node, pad: float) -> np.ndarray:
+    """(2, 3): the box of the balls of (pose, node) pairs, centre C + R c, radius
+    r + lin + ang·reach + pad (``descent.failing_nodes``'s box, in numpy)."""
+    if len(pose) == 0:
+        return np.array([[np.inf] * 3, [-np.inf] * 3])
+    centers = C[pose] + np.einsum("nij,nj->ni", R[pose], host.center[node])
+    ball = (host.radius[node] + lin[pose] + ang[pose] * host.reach[node] + pad)[:, None]
+    return np.array([(centers - ball).min(axis=0), (centers + ball).max(axis=0)])
+
 
 def _expand(pose, start, count):
     """CSR expansion: each (pose, node) pair → (pose, child) for the node's ``count`` children from ``start``."""

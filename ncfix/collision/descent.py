@@ -160,9 +160,10 @@ def _undecided_kernel(C, R, lin, ang, extra, center, radius, reach, children, fi
 
 
 def _failing_kernel(C, R, lin, ang, extra, center, radius, reach, child_start, child_count, level, size,
-                    mode, g, f, b):
+                    mode, g, f, b, pad, box):
     """Per pose, the nodes at ``level`` whose sphere fails (from the root) -> (pose, node), in
-    pose order and tree order within a pose."""
+    pose order and tree order within a pose. ``box`` (2, 3) grows to hold each such node's ball
+    widened by ``pad``: centre C + R c, radius r + lin + ang·reach + pad + extra."""
     n = C.shape[0]
     front = np.empty(size, dtype=np.int64)
     nxt = np.empty(size, dtype=np.int64)
@@ -192,6 +193,12 @@ def _failing_kernel(C, R, lin, ang, extra, center, radius, reach, child_start, c
                     pose_out[total] = p
                     node_out[total] = nd
                     total += 1
+                    cx, cy, cz = center[nd, 0], center[nd, 1], center[nd, 2]
+                    ball = radius[nd] + lin[p] + ang[p] * reach[nd] + pad + extra
+                    for a in range(3):
+                        w = C[p, a] + (R[p, a, 0] * cx + R[p, a, 1] * cy + R[p, a, 2] * cz)
+                        box[0, a] = min(box[0, a], w - ball)
+                        box[1, a] = max(box[1, a], w + ball)
             front, nxt = nxt, front
             m = nf
             if m == 0:
@@ -252,26 +259,31 @@ def undecided(tree: HostTree, lower_bound, C, R, lin, ang, extra: float, entry: 
     return out
 
 
-def failing_nodes(tree: HostTree, lower_bound, C, R, lin, ang, extra: float, level: int):
-    """(pose, node) int64 arrays: as ``Checker._failing_nodes`` (pose order, then tree order)."""
+def failing_nodes(tree: HostTree, lower_bound, C, R, lin, ang, extra: float, level: int, pad: float = 0.0):
+    """(pose, node, box): as ``Checker._failing_nodes`` (int64 arrays, pose order, then tree order),
+    and the box (2, 3) that holds every such node's ball widened by ``pad`` (``_failing_kernel``;
+    +inf / -inf when there is none)."""
     n = len(C)
     mode, g, f, b = bound_spec(lower_bound)
     empty = np.zeros(0, dtype=np.int64)
+    box = np.array([[np.inf] * 3, [-np.inf] * 3])
     if n == 0 or mode == MODE_CLEAR:
-        return empty, empty
+        return empty, empty, box
     level = min(level, len(tree.level_start) - 2)
     C, R, lin, ang = _f64(C, (n, 3)), _f64(R, (n, 3, 3)), _f64(lin, n), _f64(ang, n)
 
     def run(lo, hi):
+        part = box.copy()
         pose, node = _failing_kernel(C[lo:hi], R[lo:hi], lin[lo:hi], ang[lo:hi], float(extra), tree.center,
                                      tree.radius, tree.reach, tree.child_start, tree.child_count, int(level),
-                                     tree.widest, mode, g, f, b)
-        return pose + lo, node
+                                     tree.widest, mode, g, f, b, float(pad), part)
+        return pose + lo, node, part
 
     parts = map_runs(run, n)
     if len(parts) == 1:
         return parts[0]
-    return np.concatenate([p for p, _ in parts]), np.concatenate([q for _, q in parts])
+    return (np.concatenate([p for p, _, _ in parts]), np.concatenate([q for _, q, _ in parts]),
+            np.array([np.min([r[0] for _, _, r in parts], axis=0), np.max([r[1] for _, _, r in parts], axis=0)]))
 
 
 def lower_bounds(lower_bound, points) -> np.ndarray:
