@@ -698,6 +698,25 @@ def test_compiled_descent_decides_like_the_torch_descent(checker, bead_checker, 
         assert np.allclose(got[2], box, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("level", [3, 5, 6])
+def test_deposit_answers_do_not_depend_on_the_candidate_level(bead_checker, monkeypatch, level):
+    """The exact bead test fetches candidate beads near the failing nodes of one tree level
+    (``CANDIDATE_LEVEL``): a touching bead is near a failing node at every level, so the hits and
+    the clearances (the deepest bead of each hit) are the same at any level; only the work differs."""
+    import ncfix.collision.checker as checker_module
+
+    store = BeadStore(1.0)
+    store.add(_wall_beads(0.5))
+    C, R = _random_bead_poses(1200, seed=43)
+    n = len(C)
+    args = (C, R, np.linspace(0.0, 0.5, n), np.arange(n), store, np.zeros((0, 3)), np.zeros(0, dtype=np.int64))
+    want = bead_checker.check_deposit(*args)
+    monkeypatch.setattr(checker_module, "CANDIDATE_LEVEL", level)
+    got = bead_checker.check_deposit(*args)
+    assert 0 < want[0].sum() < n and np.isfinite(want[1]).sum() > 0
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
 @pytest.mark.parametrize("threads", ["1", "3"])
 def test_deposit_answers_do_not_depend_on_the_threads(bead_checker, monkeypatch, threads):
     """The compiled descent and exact bead test cut a batch into runs of poses for several threads

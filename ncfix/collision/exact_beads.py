@@ -1,7 +1,7 @@
 """The exact deposit test of undecided poses, as one compiled loop (``Checker._exact_kept``).
 
 For each pose (tip C, rotation R, sweep margins lin / ang, sequence number seq) the sphere tree
-names its failing ~2 mm nodes; a bead can touch the clipped head only within
+names its failing nodes at ``CANDIDATE_LEVEL``; a bead can touch the clipped head only within
 ``node radius + lin + ang·reach + bead radius + clearance`` of one of them. The loop visits, per
 failing node, the cells of a bucket grid of the beads around its ball, keeps each bead once per
 pose (the first node that reaches it), drops beads the pose does not see yet (laid at a later
