@@ -676,7 +676,7 @@ def _balls_box(host, C, R, lin, ang, pose, node, pad: float) -> np.ndarray:
     """(2, 3): the box of the balls of (pose, node) pairs, centre C + R c, radius
     r + lin + ang·reach + pad (``descent.failing_nodes``'s box, in numpy)."""
     if len(pose) == 0:
-        return np.array([[np.inf] * 3, [-np.inf] * 3])
+        return descent.empty_box()
     centers = C[pose] + np.einsum("nij,nj->ni", R[pose], host.center[node])
     ball = (host.radius[node] + lin[pose] + ang[pose] * host.reach[node] + pad)[:, None]
     return np.array([(centers - ball).min(axis=0), (centers + ball).max(axis=0)])

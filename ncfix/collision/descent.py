@@ -259,6 +259,11 @@ def undecided(tree: HostTree, lower_bound, C, R, lin, ang, extra: float, entry: 
     return out
 
 
+def empty_box() -> np.ndarray:
+    """(2, 3) the box of nothing: +inf below, -inf above (any point widens it to itself)."""
+    return np.array([[np.inf] * 3, [-np.inf] * 3])
+
+
 def failing_nodes(tree: HostTree, lower_bound, C, R, lin, ang, extra: float, level: int, pad: float = 0.0):
     """(pose, node, box): as ``Checker._failing_nodes`` (int64 arrays, pose order, then tree order),
     and the box (2, 3) that holds every such node's ball widened by ``pad`` (``_failing_kernel``;
@@ -266,7 +271,7 @@ def failing_nodes(tree: HostTree, lower_bound, C, R, lin, ang, extra: float, lev
     n = len(C)
     mode, g, f, b = bound_spec(lower_bound)
     empty = np.zeros(0, dtype=np.int64)
-    box = np.array([[np.inf] * 3, [-np.inf] * 3])
+    box = empty_box()
     if n == 0 or mode == MODE_CLEAR:
         return empty, empty, box
     level = min(level, len(tree.level_start) - 2)
@@ -282,8 +287,9 @@ def failing_nodes(tree: HostTree, lower_bound, C, R, lin, ang, extra: float, lev
     parts = map_runs(run, n)
     if len(parts) == 1:
         return parts[0]
+    boxes = np.array([r for _, _, r in parts])
     return (np.concatenate([p for p, _, _ in parts]), np.concatenate([q for _, q, _ in parts]),
-            np.array([np.min([r[0] for _, _, r in parts], axis=0), np.max([r[1] for _, _, r in parts], axis=0)]))
+            np.array([boxes[:, 0].min(axis=0), boxes[:, 1].max(axis=0)]))
 
 
 def lower_bounds(lower_bound, points) -> np.ndarray:
