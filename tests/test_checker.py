@@ -173,8 +173,9 @@ def test_grouped_sweeps_decide_like_sample_by_sample(checker, meshes):
 @pytest.mark.parametrize("margin_mm", [0.5, 2.0, 6.0])
 def test_a_margin_is_honoured_exactly(checker, meshes, margin_mm):
     """With a margin (sweeps) a pose is flagged iff the exact distance (the reference: coal's
-    mesh distance) is below it: no miss, and no false alarm (the checker's exact test is coal's
-    collision test with the margin as its security margin)."""
+    mesh distance) is below it: no miss, and no false alarm (the checker's exact test: the
+    compiled triangle pairs of ``proximity`` up to its cap (0.5, 2 mm), coal's collision test
+    with the margin as its security margin beyond (6 mm))."""
     _, mold = meshes
     C, R = _random_part_poses(mold, 300, seed=3)
     flagged = checker.check_parts(C, R, np.full(len(C), margin_mm))[:, 0]

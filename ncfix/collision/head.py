@@ -274,22 +274,29 @@ class SphereTree:
         return int(self.level_start[-1] - self.level_start[-2])
 
 
+def _octree_order(c: np.ndarray, leaf_cell_mm: float) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The order of the ball centres c (n, 3) in ``build_sphere_tree``'s leaves (sorted by their
+    octree cells at every level, root first, so each node's balls are contiguous; a stable sort),
+    and each level's (n, 3) cell keys, root first."""
+    lo = c.min(axis=0) - 1e-9
+    extent = float((c.max(axis=0) - lo).max())
+    levels = max(1, int(np.ceil(np.log2(max(extent / leaf_cell_mm, 1.0)))) + 1)
+    keys = [np.floor((c - lo) / (leaf_cell_mm * 2.0 ** (levels - 1 - lev))).astype(np.int64) for lev in range(levels)]
+    return np.lexsort(tuple(k[:, d] for k in reversed(keys) for d in (2, 1, 0))), keys
+
+
+def leaf_order(centers_mm: np.ndarray, leaf_cell_mm: float) -> np.ndarray:
+    """The order in which ``build_sphere_tree`` puts these balls in its last level: balls given
+    in this order stay in it (the leaf of node ``level_start[-2] + i`` is ball i)."""
+    return _octree_order(np.asarray(centers_mm, dtype=np.float64), leaf_cell_mm)[0]
+
+
 def build_sphere_tree(centers_mm: np.ndarray, radii_mm: np.ndarray, leaf_cell_mm: float) -> SphereTree:
     """Octree levels over ball centres: cells of leaf_cell_mm·2^k, up to one root; each node's
     sphere is the tightest about its balls' box centre that holds all of them."""
     c = np.asarray(centers_mm, dtype=np.float64)
     r = np.asarray(radii_mm, dtype=np.float64)
-    lo = c.min(axis=0) - 1e-9
-    extent = float((c.max(axis=0) - lo).max())
-    levels = max(1, int(np.ceil(np.log2(max(extent / leaf_cell_mm, 1.0)))) + 1)
-    # member[l] : (n_balls,) node index (within level l) of every ball, level 0 = root
-    keys = []
-    for lev in range(levels):
-        edge = leaf_cell_mm * 2.0 ** (levels - 1 - lev)
-        cell = np.floor((c - lo) / edge).astype(np.int64)
-        keys.append(cell)
-    # Sort the balls by their cells at every level (root first), so each node's balls are contiguous.
-    order = np.lexsort(tuple(k[:, d] for k in reversed(keys) for d in (2, 1, 0)))
+    order, keys = _octree_order(c, leaf_cell_mm)
     c, r = c[order], r[order]
     keys = [k[order] for k in keys]
     node_of = []  # per level: (n_balls,) node id within the level
