@@ -1,9 +1,9 @@
 """Arrays derived from the meshes, kept on disk between runs: one ``.npz`` per result.
 
 Building the checker's models from the head and part meshes (voxelizing, the distance transform,
-the covering balls and their trees, the clipped head's cell lists and sign grid, the CoACD
-pieces) takes seconds and gives the same arrays for
-the same meshes and settings every time. They are stored under ``$NCFIX_CACHE`` (default
+the covering balls and their trees, the clipped head's cell lists and sign grid, the head's
+triangle tree and each part's cell lists for the exact part test, the CoACD pieces) takes
+seconds and gives the same arrays for the same meshes and settings every time. They are stored under ``$NCFIX_CACHE`` (default
 ``~/.cache/ncfix``) in files named ``KIND-KEY.npz``, where KEY is a sha256 of
 
 - everything the result is computed from: the mesh's exact vertex and face arrays, the pitch and

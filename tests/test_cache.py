@@ -16,6 +16,7 @@ import ncfix
 from ncfix import cache
 from ncfix.collision import grid as grid_module
 from ncfix.collision import head as head_module
+from ncfix.collision import proximity as proximity_module
 from ncfix.collision.grid import build_distance_grid, cached_distance_grid
 from ncfix.collision.head import build_head_model, build_sphere_tree, cached_head_model, cached_sphere_tree
 from ncfix.geometry.near import NearSurface, cached_near_surface
@@ -205,10 +206,12 @@ def _check_wall(folder: Path, monkeypatch) -> list:
 def test_a_fix_from_a_warm_cache_is_the_fix_from_a_cold_one(tmp_path, monkeypatch):
     folder = tmp_path / "cache"
     cold = _fix_ijk(folder, monkeypatch)
-    assert {p.name.split("-")[0] for p in folder.iterdir()} == {"grid", "head", "tree"}  # no deposit: no near
+    # No deposit: no near surface of the clipped head.
+    assert {p.name.split("-")[0] for p in folder.iterdir()} == {"grid", "head", "tree", "proximity"}
     _no_build(monkeypatch, grid_module, "build_distance_grid")
     _no_build(monkeypatch, head_module, "build_head_model")
     _no_build(monkeypatch, head_module, "build_sphere_tree")
+    _no_build(monkeypatch, proximity_module, "build_arrays")
     warm = _fix_ijk(folder, monkeypatch)
     assert warm == cold
     assert cold[0] == (CASES / "fix_ijk.expected.nc").read_bytes()
