@@ -11,7 +11,7 @@ import pytest
 import trimesh
 
 from ncfix.correct.decompose import cache_key, decompose
-from ncfix.correct.epa import EpaModel, _angle_deg, _boxes_met, _tilt_axis, _turned
+from ncfix.correct.epa import EpaModel, _angle_deg, _boxes_met, _convex, _pieces_met, _tilt_axis, _turned
 from ncfix.geometry.frames import angle_between_deg, axis_rotation, minimal_rotation, rotation_from_z
 from ncfix.reference import ExactReference
 
@@ -343,6 +343,39 @@ def test_pieces_met_are_those_whose_boxes_meet_the_placed_hull_box(tmp_path):
         want = np.flatnonzero(((piece_lo <= hi) & (piece_hi >= lo)).all(axis=1))
         assert 5 <= len(want) < 200 and not np.isin(np.arange(5, 10), want).any()
         assert np.array_equal(_boxes_met(points, c, r, piece_lo, piece_hi), want)
+
+
+def test_pieces_dropped_by_a_hull_face_cannot_meet_the_hull():
+    """The broad phase keeps every piece that meets the head's hull (coal's GJK, the test the
+    strategy runs next), drops only pieces some hull face plane separates, and among the pieces
+    whose boxes meet the placed hull's box drops many: the extraction vectors do not change, the
+    GJK calls do."""
+    head = trimesh.load(REPO / "samples" / "deposition_head.stl")
+    model = EpaModel(head, [])
+    hull = model._head
+    rng = np.random.default_rng(8)
+    pieces = [trimesh.convex.convex_hull(rng.normal(size=(int(rng.integers(4, 40)), 3)) * rng.uniform(2, 25, 3)
+                                         + rng.uniform(-90, 90, 3)) for _ in range(150)]
+    lo = np.array([p.bounds[0] for p in pieces])
+    hi = np.array([p.bounds[1] for p in pieces])
+    vertices = np.ascontiguousarray(np.vstack([p.vertices for p in pieces]), dtype=np.float64)
+    vstart = np.concatenate([[0], np.cumsum([len(p.vertices) for p in pieces])]).astype(np.int64)
+    shapes = [_convex(p) for p in pieces]
+    boxed = dropped = 0
+    for _ in range(60):
+        c = rng.uniform(-30, 30, 3)
+        r = rotation_from_z(rng.normal(size=3) * [0.4, 0.4, 0.0] + Z)
+        met = set(_boxes_met(model._head_points, c, r, lo, hi).tolist())
+        kept = set(_pieces_met(model._head_points, c, r, lo, hi, model._head_normals, model._head_offsets,
+                               vertices, vstart).tolist())
+        assert kept <= met
+        for j in met:
+            touching = coal.collide(hull, coal.Transform3s(r, c), shapes[j], coal.Transform3s(),
+                                    coal.CollisionRequest(), coal.CollisionResult()) > 0
+            assert j in kept or not touching, (j, c, r)
+        boxed += len(met)
+        dropped += len(met - kept)
+    assert boxed > 500 and dropped > 0.2 * boxed
 
 
 def test_walk_arithmetic_matches_the_matrix_formulation():
