@@ -26,6 +26,35 @@ import trimesh
 from ncfix.geometry.distance import point_mesh_distance, winding_numbers
 
 
+# An extreme vertex this far (mm) outside a box is outside it whatever the rounding of the placing.
+_NEST_SLACK_MM = 1e-9
+
+
+def _cannot_nest(c, r, extremes, lo, hi, span):  # pragma: no cover - compiled
+    """True only when ``_nested``'s two box tests both fail: an extreme head vertex placed at
+    (c, r) lies more than the slack outside the part's box (lo, hi), and the part's box is wider
+    than the head's span. One compiled call instead of a few numpy ones (the usual answer)."""
+    for a in range(3):
+        if hi[a] - lo[a] > span:
+            break
+    else:
+        return False  # the part may fit inside the head: the full test decides
+    for i in range(extremes.shape[0]):
+        for a in range(3):
+            w = c[a] + r[a, 0] * extremes[i, 0] + r[a, 1] * extremes[i, 1] + r[a, 2] * extremes[i, 2]
+            if w < lo[a] - _NEST_SLACK_MM or w > hi[a] + _NEST_SLACK_MM:
+                return True
+    return False
+
+
+try:
+    from numba import njit as _njit
+
+    _cannot_nest = _njit(cache=True, nogil=True)(_cannot_nest)
+except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
+    pass
+
+
 def _bvh(mesh: trimesh.Trimesh) -> coal.BVHModelOBBRSS:
     model = coal.BVHModelOBBRSS()
     model.beginModel(len(mesh.faces), len(mesh.vertices))
@@ -148,6 +177,8 @@ class ExactReference:
         holds the other only if its box holds the other's; the quick tests below only rule out
         boxes that cannot (the same answers as testing every vertex, at a tenth of the cost)."""
         part_lo, part_hi = part.lo, part.hi
+        if _cannot_nest(c, r, self._head_extremes, part_lo, part_hi, self._head_span):
+            return False
         extremes = c + self._head_extremes @ r.T
         if (extremes >= part_lo).all() and (extremes <= part_hi).all():
             head_world = c + self._head_vertices @ r.T
