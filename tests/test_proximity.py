@@ -107,6 +107,32 @@ def test_head_against_the_mold_matches_coal(sample):
     assert counts.min() > 300  # both answers well represented
 
 
+def test_a_large_part_gets_larger_cells_and_the_same_answers(sample, monkeypatch):
+    """A part whose box would need more than MAX_CELLS cells (here the sample mold, the limit
+    lowered to 20,000 from its 190,000 cells of 2 mm) gets cells large enough, and the answers
+    stay coal's."""
+    head, mold, grid, _ = sample
+    monkeypatch.setattr(proximity, "MAX_CELLS", 20_000)
+    arrays = build_arrays(head, mold.triangles)
+    assert float(arrays["cell_mm"]) > 4.0 and int(np.prod(arrays["dims"])) <= 20_000
+    near = HeadProximity(arrays, grid)
+    head_bvh, mold_bvh = _bvh(head), _bvh(mold)
+    tips, rotations = _poses(mold, 400, 2)
+    answers = []
+    for c, r, d in zip(tips, rotations, np.resize([0.0, 0.3, 1.0, CAP_MM], len(tips))):
+        request = coal.CollisionRequest()
+        request.security_margin = d
+        want = coal.collide(head_bvh, coal.Transform3s(r, c), mold_bvh, coal.Transform3s(), request,
+                            coal.CollisionResult()) > 0
+        got = near.within(c, r, d)
+        if got != want:  # only where coal's distance is d to rounding, and then never "apart"
+            gap = coal.distance(head_bvh, coal.Transform3s(r, c), mold_bvh, coal.Transform3s(),
+                                coal.DistanceRequest(), coal.DistanceResult())
+            assert got and abs(gap - d) < 1e-6
+        answers.append(want)
+    assert 50 < sum(answers) < 350
+
+
 def test_distance_beyond_the_cap_is_refused(sample):
     _, _, _, near = sample
     with pytest.raises(ValueError, match="outside"):
