@@ -113,3 +113,23 @@ def test_signed_distance_below_a_threshold(solid):
     assert deeper.sum() > 100 and ((sd < 0) & ~deeper).sum() > 100
     assert np.allclose(got[deeper], sd[deeper], atol=1e-9)
     assert (got[~deeper] == below[~deeper]).all()
+
+
+def test_a_large_mesh_gets_larger_cells_and_the_same_distances():
+    """A 3 m block would need 10^9 cells of 2 mm (8 GB of offsets): the cells grow until its box
+    holds at most MAX_CELLS, and the distances stay the exact ones (here, to a box: closed form)."""
+    from ncfix.geometry import near
+
+    block = trimesh.creation.box(bounds=[[-1500.0, -1500.0, -3000.0], [1500.0, 1500.0, 0.0]])
+    tris = np.asarray(block.triangles, dtype=np.float64)
+    *_, cell = near._cell_lists(tris, 12.0, 2.0)
+    assert cell > 2.0
+    rng = np.random.default_rng(4)
+    points = rng.uniform([-1600.0, -1600.0, -3100.0], [1600.0, 1600.0, 100.0], (400, 3))
+    points[:100, 2] = rng.uniform(-5.0, 5.0, 100)  # near the top face
+    got = near.surface_distances(tris, points, 12.0)
+    lo, hi = np.array([-1500.0, -1500.0, -3000.0]), np.array([1500.0, 1500.0, 0.0])
+    outside = np.linalg.norm(np.maximum(np.maximum(lo - points, points - hi), 0.0), axis=1)
+    inside = np.minimum(points - lo, hi - points).min(axis=1)
+    want = np.where((points > lo).all(axis=1) & (points < hi).all(axis=1), inside, outside)
+    assert np.allclose(got, want, atol=1e-9, rtol=0)

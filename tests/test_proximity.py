@@ -8,6 +8,7 @@ import pytest
 import trimesh
 
 from ncfix.collision import proximity
+from ncfix.geometry import near as near_module
 from ncfix.collision.grid import build_distance_grid
 from ncfix.collision.proximity import CAP_MM, SLACK_MM, HeadProximity, build_arrays, cached_head_proximity
 from ncfix.geometry.frames import minimal_rotation
@@ -112,7 +113,7 @@ def test_a_large_part_gets_larger_cells_and_the_same_answers(sample, monkeypatch
     lowered to 20,000 from its 190,000 cells of 2 mm) gets cells large enough, and the answers
     stay coal's."""
     head, mold, grid, _ = sample
-    monkeypatch.setattr(proximity, "MAX_CELLS", 20_000)
+    monkeypatch.setattr(near_module, "MAX_CELLS", 20_000)
     arrays = build_arrays(head, mold.triangles)
     assert float(arrays["cell_mm"]) > 4.0 and int(np.prod(arrays["dims"])) <= 20_000
     near = HeadProximity(arrays, grid)

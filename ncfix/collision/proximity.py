@@ -34,6 +34,7 @@ import trimesh
 from ncfix.collision import descent
 from ncfix.collision.grid import DistanceGrid
 from ncfix.collision.head import build_sphere_tree, leaf_order
+from ncfix.geometry import near
 from ncfix.geometry.near import _cell_lists, _tri_d2
 
 # The head's triangles are split until no edge is longer than this (mm): small triangles have
@@ -44,9 +45,8 @@ TREE_LEAF_MM = 2.0
 # Part triangles within this (mm) of any point of a cell are listed there: distances up to it are
 # answered here, larger ones by the caller (coal).
 CAP_MM = 2.0
-# The cells' edge (mm), grown for a large part so that its box holds at most MAX_CELLS cells.
+# The cells' edge (mm); a large part's grow (``near.MAX_CELLS``).
 CELL_MM = 2.0
-MAX_CELLS = 4_000_000
 # Added to every distance compared (mm): rounding may only turn a near miss into a hit.
 SLACK_MM = 1e-9
 
@@ -229,23 +229,11 @@ PROXIMITY_SOURCES = ("ncfix.collision.proximity", "ncfix.collision.head", "ncfix
                      "ncfix.geometry.tolerances")
 
 
-def _cell_for(part: np.ndarray, reach: float, cell_mm: float) -> float:
-    """``cell_mm``, or a larger cell where the part's padded box would need more than MAX_CELLS
-    of it (a large part: any cell size gives the same answers, a larger one longer lists)."""
-    if not len(part):
-        return cell_mm
-    extent = np.ptp(part.reshape(-1, 3), axis=0) + 2.0 * (reach + cell_mm)
-    while np.prod(np.ceil(extent / cell_mm) + 1.0) > MAX_CELLS:
-        cell_mm *= 1.25
-        extent = np.ptp(part.reshape(-1, 3), axis=0) + 2.0 * (reach + cell_mm)
-    return cell_mm
-
-
 def build_arrays(head: trimesh.Trimesh, part_triangles: np.ndarray, cap_mm: float = CAP_MM,
                  cell_mm: float = CELL_MM) -> dict[str, np.ndarray]:
     """The arrays of a HeadProximity: the head's triangles split to edges of at most
     ``HEAD_EDGE_MM`` (the same surface) in the order of their ball tree's leaves, the tree, and
-    the part's triangles in cells (``CELL_MM``, larger for a large part: ``_cell_for``), each cell
+    the part's triangles in cells (``CELL_MM``, larger for a large part: ``near._cell_lists``), each cell
     listing every part triangle within cap + the widest leaf radius of any of its points (a leaf
     looks up the cell of its ball's centre)."""
     vertices, faces = trimesh.remesh.subdivide_to_size(np.asarray(head.vertices, dtype=np.float64),
@@ -258,9 +246,7 @@ def build_arrays(head: trimesh.Trimesh, part_triangles: np.ndarray, cap_mm: floa
     if not np.array_equal(tree.center_mm[leaf0:], centre[order]):  # pragma: no cover - leaf_order's promise
         raise AssertionError("HeadProximity: the tree's leaves are not the triangles in order")
     part = np.ascontiguousarray(part_triangles, dtype=np.float64).reshape(-1, 3, 3)
-    reach = float(cap_mm) + float(radius.max())
-    cell_mm = _cell_for(part, reach, float(cell_mm))
-    lo, dims, start, listed = _cell_lists(part, reach, cell_mm)
+    lo, dims, start, listed, cell_mm = _cell_lists(part, float(cap_mm) + float(radius.max()), float(cell_mm))
     return {"head": tris[order], "center": tree.center_mm, "radius": tree.radius_mm,
             "child_start": tree.child_start, "child_count": tree.child_count, "leaf0": np.int64(leaf0),
             "part": part, "cap_mm": np.float64(cap_mm), "cell_mm": np.float64(cell_mm), "lo": lo, "dims": dims,
@@ -314,7 +300,7 @@ def cached_head_proximity(head: trimesh.Trimesh, part: trimesh.Trimesh, grid: Di
     key = cache.make_key(
         "proximity",
         np.asarray(head.vertices, dtype=np.float64), np.asarray(head.faces, dtype=np.int64),
-        np.asarray(part.triangles, dtype=np.float64), CAP_MM, CELL_MM, MAX_CELLS, HEAD_EDGE_MM, TREE_LEAF_MM,
+        np.asarray(part.triangles, dtype=np.float64), CAP_MM, CELL_MM, near.MAX_CELLS, HEAD_EDGE_MM, TREE_LEAF_MM,
         cache.fingerprint(*PROXIMITY_SOURCES), {package: cache.version(package) for package in ("numpy", "trimesh")},
     )
 

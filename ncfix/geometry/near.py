@@ -23,6 +23,8 @@ import numpy as np
 SIGN_PITCH_MM = 0.5
 # Covers the voxelizer's ray jitter and float rounding (mm).
 SIGN_SLACK_MM = 1e-4
+# Cell lists hold at most this many cells: a large mesh gets larger cells (``_cell_lists``).
+MAX_CELLS = 4_000_000
 # The code a NearSurface comes from: editing any of these files makes every cached one a miss.
 NEAR_SOURCES = ("ncfix.geometry.near", "ncfix.collision.voxelize", "ncfix.collision.grid", "ncfix.geometry.tolerances")
 _NEAR_ARRAYS = ("triangles", "cap_mm", "cell_mm", "lo", "dims", "start", "listed", "inside", "sign_lo", "sign_pitch",
@@ -301,7 +303,12 @@ _first_touch_kernel = _jit(_first_touch_kernel)
 
 def _cell_lists(tris: np.ndarray, cap_mm: float, cell_mm: float):
     """Cells of ``cell_mm`` over the triangles' box padded by ``cap_mm`` + a cell, each listing every
-    triangle within ``cap_mm`` of any of its points -> (lo, dims, start, listed) (module doc)."""
+    triangle within ``cap_mm`` of any of its points -> (lo, dims, start, listed, cell_mm) (module
+    doc). Where the box would need more than MAX_CELLS cells (a large mesh) the cell grows until it
+    does not: the lists hold the same triangles for any cell size (longer ones for larger cells)."""
+    box = np.ptp(tris.reshape(-1, 3), axis=0)
+    while np.prod(np.ceil((box + 2.0 * (cap_mm + cell_mm)) / cell_mm)) > MAX_CELLS:
+        cell_mm *= 1.25
     pad = cap_mm + cell_mm
     lo = tris.reshape(-1, 3).min(axis=0) - pad
     hi = tris.reshape(-1, 3).max(axis=0) + pad
@@ -313,7 +320,7 @@ def _cell_lists(tris: np.ndarray, cap_mm: float, cell_mm: float):
     listed = np.empty(int(start[-1]), dtype=np.int64)
     counts[:] = 0
     _cells_kernel(tris, lo, cell_mm, dims, reach, counts, start, listed, True)
-    return lo, dims, start, listed
+    return lo, dims, start, listed, float(cell_mm)
 
 
 def surface_distances(triangles: np.ndarray, points: np.ndarray, cap_mm: float, cell_mm: float = 2.0) -> np.ndarray:
@@ -330,10 +337,10 @@ def surface_distances(triangles: np.ndarray, points: np.ndarray, cap_mm: float, 
     if not len(tris):
         out[:] = np.inf
         return out
-    lo, dims, start, listed = _cell_lists(tris, float(cap_mm), float(cell_mm))
+    lo, dims, start, listed, cell_mm = _cell_lists(tris, float(cap_mm), float(cell_mm))
 
     def run(a: int, b: int) -> None:
-        _distances_kernel(pts[a:b], out[a:b], tris, lo, float(cell_mm), dims, float(cap_mm), start, listed)
+        _distances_kernel(pts[a:b], out[a:b], tris, lo, cell_mm, dims, float(cap_mm), start, listed)
 
     map_runs(run, len(pts))
     return out
@@ -351,7 +358,8 @@ class NearSurface:
         self.triangles = np.ascontiguousarray(triangles, dtype=np.float64)
         self.cap_mm = float(cap_mm)
         self.cell_mm = float(cell_mm)
-        self.lo, self.dims, self.start, self.listed = _cell_lists(self.triangles, self.cap_mm, self.cell_mm)
+        self.lo, self.dims, self.start, self.listed, self.cell_mm = _cell_lists(self.triangles, self.cap_mm,
+                                                                                self.cell_mm)
         # The sign grid: cell-centre occupancy (the column-parity voxelizer) at SIGN_PITCH_MM.
         from ncfix.collision.voxelize import voxelize
 
