@@ -6,14 +6,18 @@ answers with its mesh-mesh collision test and ``d`` as the security margin: abou
 contact, most of it the traversal of two bounding-volume trees from Python, holding the GIL. Here
 the same question is answered from structures the checker already has:
 
-- The head's triangles are grouped in clusters (octree cells of ``CLUSTER_MM`` by centroid), each
-  with a ball that holds its triangles, and each triangle has its own ball. The part's
-  ``DistanceGrid`` lower bound clears a cluster, then a triangle, whose ball at the pose lies
-  farther than ``d`` from the part (``lb(centre) > radius + d``: no point of it is within d).
-- A triangle left is tested against the part's triangles listed in the cells its box crosses. As
-  in ``NearSurface``, cell k lists every part triangle within ``cap`` of any point of the cell;
-  every point of the head triangle lies in one of those cells, so with ``d <= cap`` every part
-  triangle within d of it is listed. (A larger d goes back to coal.)
+- The head's triangles are split until no edge is longer than ``HEAD_EDGE_MM`` (the same
+  surface; small triangles have tight balls) and put in a ball tree (``build_sphere_tree``, octree
+  levels from ``TREE_LEAF_MM``). The part's ``DistanceGrid`` lower bound clears a node whose ball
+  at the pose lies farther than ``d`` from the part (``lb(centre) > radius + d``: no point of it
+  is within d), and with it the node's triangles.
+- A triangle left (a leaf) is tested against the part triangles listed in the cell of its ball's
+  centre. As in ``NearSurface``, a cell lists every part triangle within a reach of any point of
+  the cell; the reach here is ``CAP_MM`` + the widest leaf ball, so with ``d <= CAP_MM`` every
+  part triangle within d of the leaf's triangle is listed. (A larger d goes back to coal.) Each
+  listed triangle is rejected, where it can be, by its box, its distance from the leaf's ball
+  centre and a separating face plane of either triangle (most pairs near contact are a small head
+  triangle over a large part triangle), before the exact test.
 - Two triangles are within d exactly when a vertex of one is within d of the other, an edge of one
   within d of an edge of the other, or an edge of one crosses the other (for triangles apart, the
   closest points are a vertex and a face or two edges; for triangles that meet, an edge of one
