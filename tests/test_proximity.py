@@ -70,7 +70,7 @@ def sample():
     head = trimesh.load(SAMPLES / "deposition_head.stl")
     mold = trimesh.load(SAMPLES / "recreated_mold.stl")
     grid = build_distance_grid(mold, 0.5, name="mold")
-    return head, mold, grid, HeadProximity(build_arrays(head, mold.triangles), grid)
+    return head, mold, grid, HeadProximity(build_arrays(head, mold.triangles), mold.triangles, grid)
 
 
 def _poses(mold, n, seed):
@@ -116,7 +116,7 @@ def test_a_large_part_gets_larger_cells_and_the_same_answers(sample, monkeypatch
     monkeypatch.setattr(near_module, "MAX_CELLS", 20_000)
     arrays = build_arrays(head, mold.triangles)
     assert float(arrays["cell_mm"]) > 4.0 and int(np.prod(arrays["dims"])) <= 20_000
-    near = HeadProximity(arrays, grid)
+    near = HeadProximity(arrays, mold.triangles, grid)
     head_bvh, mold_bvh = _bvh(head), _bvh(mold)
     tips, rotations = _poses(mold, 400, 2)
     answers = []

@@ -184,15 +184,14 @@ def _within_kernel(c, r, d, head, center, radius, child_start, child_count, leaf
         q = (q0 * dims[1] + q1) * dims[2] + q2
         if start[q] == start[q + 1]:
             continue
-        ball2 = (radius[nd] + reach) * (radius[nd] + reach)
+        grow = radius[nd] + reach  # a part triangle within d of the leaf's triangle is this near its centre
         placed = False
         for e in range(start[q], start[q + 1]):
             t = listed[e]
-            if (part_lo[t, 0] > wx + radius[nd] + reach or part_lo[t, 1] > wy + radius[nd] + reach
-                    or part_lo[t, 2] > wz + radius[nd] + reach or part_hi[t, 0] < wx - radius[nd] - reach
-                    or part_hi[t, 1] < wy - radius[nd] - reach or part_hi[t, 2] < wz - radius[nd] - reach):
+            if (part_lo[t, 0] > wx + grow or part_lo[t, 1] > wy + grow or part_lo[t, 2] > wz + grow
+                    or part_hi[t, 0] < wx - grow or part_hi[t, 1] < wy - grow or part_hi[t, 2] < wz - grow):
                 continue
-            if _tri_d2(wx, wy, wz, part[t]) > ball2:
+            if _tri_d2(wx, wy, wz, part[t]) > grow * grow:
                 continue
             if not placed:
                 for v in range(3):
@@ -226,7 +225,7 @@ def _balls(tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 # The arrays a HeadProximity is made of (the on-disk cache keeps them).
-_ARRAYS = ("head", "center", "radius", "child_start", "child_count", "leaf0", "part", "cap_mm", "cell_mm", "lo",
+_ARRAYS = ("head", "center", "radius", "child_start", "child_count", "leaf0", "levels", "cap_mm", "cell_mm", "lo",
            "dims", "start", "listed")
 # The code the arrays come from: editing any of these files makes every cached one a miss.
 PROXIMITY_SOURCES = ("ncfix.collision.proximity", "ncfix.collision.head", "ncfix.geometry.near",
@@ -236,10 +235,11 @@ PROXIMITY_SOURCES = ("ncfix.collision.proximity", "ncfix.collision.head", "ncfix
 def build_arrays(head: trimesh.Trimesh, part_triangles: np.ndarray, cap_mm: float = CAP_MM,
                  cell_mm: float = CELL_MM) -> dict[str, np.ndarray]:
     """The arrays of a HeadProximity: the head's triangles split to edges of at most
-    ``HEAD_EDGE_MM`` (the same surface) in the order of their ball tree's leaves, the tree, and
-    the part's triangles in cells (``CELL_MM``, larger for a large part: ``near._cell_lists``), each cell
-    listing every part triangle within cap + the widest leaf radius of any of its points (a leaf
-    looks up the cell of its ball's centre)."""
+    ``HEAD_EDGE_MM`` (the same surface) in the order of their ball tree's leaves, the tree and its
+    number of levels, and cell lists of the part's triangles (given again to HeadProximity):
+    cells of ``CELL_MM`` (larger for a large part: ``near._cell_lists``), each listing every part
+    triangle within cap + the widest leaf radius of any of its points (a leaf looks up the cell of
+    its ball's centre)."""
     vertices, faces = trimesh.remesh.subdivide_to_size(np.asarray(head.vertices, dtype=np.float64),
                                                        np.asarray(head.faces, dtype=np.int64), HEAD_EDGE_MM)
     tris = np.asarray(vertices, dtype=np.float64)[faces]
@@ -253,18 +253,19 @@ def build_arrays(head: trimesh.Trimesh, part_triangles: np.ndarray, cap_mm: floa
     lo, dims, start, listed, cell_mm = _cell_lists(part, float(cap_mm) + float(radius.max()), float(cell_mm))
     return {"head": tris[order], "center": tree.center_mm, "radius": tree.radius_mm,
             "child_start": tree.child_start, "child_count": tree.child_count, "leaf0": np.int64(leaf0),
-            "part": part, "cap_mm": np.float64(cap_mm), "cell_mm": np.float64(cell_mm), "lo": lo, "dims": dims,
-            "start": start, "listed": listed.astype(np.int32)}
+            "levels": np.int64(len(tree.level_start) - 1), "cap_mm": np.float64(cap_mm),
+            "cell_mm": np.float64(cell_mm), "lo": lo, "dims": dims, "start": start, "listed": listed.astype(np.int32)}
 
 
 class HeadProximity:
     """The head's triangles against one part's, for ``within`` (module doc).
 
-    arrays : ``build_arrays``'s (head frame for the head, workpiece frame for the part)
+    arrays : ``build_arrays``'s for these part triangles (head frame for the head)
+    part_triangles : (m, 3, 3) float64, workpiece frame
     grid : the part's DistanceGrid (clears the tree's balls)
     """
 
-    def __init__(self, arrays: dict[str, np.ndarray], grid: DistanceGrid):
+    def __init__(self, arrays: dict[str, np.ndarray], part_triangles: np.ndarray, grid: DistanceGrid):
         self.head = np.ascontiguousarray(arrays["head"], dtype=np.float64)
         self.center = np.ascontiguousarray(arrays["center"], dtype=np.float64)
         self.radius = np.ascontiguousarray(arrays["radius"], dtype=np.float64)
@@ -272,9 +273,8 @@ class HeadProximity:
         self.child_count = np.ascontiguousarray(arrays["child_count"], dtype=np.int64)
         self.leaf0 = int(arrays["leaf0"])
         # Depth first: at most (children - 1) nodes wait on the stack per level, plus the node.
-        levels = int(np.ceil(np.log2(max(len(self.center), 2)))) + 2
-        self.stack_size = int(self.child_count.max() + 1) * levels + 1
-        self.part = np.ascontiguousarray(arrays["part"], dtype=np.float64)
+        self.stack_size = int(self.child_count.max() + 1) * int(arrays["levels"]) + 1
+        self.part = np.ascontiguousarray(part_triangles, dtype=np.float64).reshape(-1, 3, 3)
         self.part_lo = np.ascontiguousarray(self.part.min(axis=1))
         self.part_hi = np.ascontiguousarray(self.part.max(axis=1))
         self.cap_mm, self.cell_mm = float(arrays["cap_mm"]), float(arrays["cell_mm"])
@@ -312,10 +312,10 @@ def cached_head_proximity(head: trimesh.Trimesh, part: trimesh.Trimesh, grid: Di
         n = len(a["radius"])
         if a["center"].shape != (n, 3) or a["head"].shape[1:] != (3, 3) or a["dims"].shape != (3,) \
                 or len(a["start"]) != int(np.prod(a["dims"])) + 1 or a["start"][-1] != len(a["listed"]) \
-                or int(a["leaf0"]) + len(a["head"]) != n:
+                or int(a["leaf0"]) + len(a["head"]) != n or int(a["levels"]) < 1:
             return None
         return a
 
     arrays, _ = cache.cached("proximity", key, _ARRAYS, lambda: build_arrays(head, part.triangles),
                              lambda a: a, from_arrays, cache_dir)
-    return HeadProximity(arrays, grid)
+    return HeadProximity(arrays, part.triangles, grid)
