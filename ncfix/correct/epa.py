@@ -117,6 +117,7 @@ class EpaModel:
         self.head_reach_mm = float(np.linalg.norm(self._head_points, axis=1).max())
         self._head_normals = np.ascontiguousarray(hull.face_normals, dtype=np.float64)
         self._head_offsets = np.einsum("ij,ij->i", self._head_normals, hull.triangles[:, 0])
+        self._head_centre = self._head_points.mean(axis=0)  # the broad phase's view point
         self._head = _convex(hull)
         bead_hull = _clip_hull(hull, float(tip_allowance_mm))
         self._bead_head = _convex(bead_hull)
@@ -160,7 +161,7 @@ class EpaModel:
         pose = coal.Transform3s(r, c)
         vectors, bodies = [], []
         for i in _pieces_met(self._head_points, c, r, self._piece_lo, self._piece_hi, self._head_normals,
-                             self._head_offsets, self._piece_vertices, self._piece_vstart):
+                             self._head_offsets, self._head_centre, self._piece_vertices, self._piece_vstart):
             v = self._penetration(self._head, pose, self._pieces[i], self._identity)
             if v is not None:
                 vectors.append(v)
@@ -491,21 +492,16 @@ def _boxes_met(points, c, r, lo, hi):  # pragma: no cover - compiled
     return out[:k]
 
 
-def _pieces_met(points, c, r, lo, hi, normals, offsets, vertices, vstart):  # pragma: no cover - compiled
+def _pieces_met(points, c, r, lo, hi, normals, offsets, centre, vertices, vstart):  # pragma: no cover - compiled
     """``_boxes_met``'s boxes less the pieces (vertices[vstart[j]:vstart[j + 1]], world frame)
     that lie wholly beyond a face plane of the hull the points span (normals, offsets: its face
     planes in the head frame, outward): such a plane separates them. The face tried for a piece
-    is the one facing its centre most (from the hull's centre); a piece it does not separate is
-    kept (the GJK test decides)."""
+    is the one facing its centre most (from the hull's ``centre``, head frame); a piece it does
+    not separate is kept (the GJK test decides)."""
     met = _boxes_met(points, c, r, lo, hi)
     out = np.empty(met.shape[0], np.int64)
     k = 0
-    hx = hy = hz = 0.0
-    for i in range(points.shape[0]):
-        hx += points[i, 0]
-        hy += points[i, 1]
-        hz += points[i, 2]
-    hx, hy, hz = hx / points.shape[0], hy / points.shape[0], hz / points.shape[0]
+    hx, hy, hz = centre[0], centre[1], centre[2]
     for m in range(met.shape[0]):
         j = met[m]
         # The piece's box centre in the head frame, seen from the hull's centre.
