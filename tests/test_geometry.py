@@ -12,7 +12,7 @@ from ncfix.collision.head import RiskZones, build_head_model
 from ncfix.collision.voxelize import surface_cells, voxelize
 from ncfix.errors import GeometryError
 from ncfix.geometry.distance import point_mesh_distance, winding_numbers
-from ncfix.geometry.frames import rotation_from_z
+from ncfix.geometry.frames import angle_between_deg, rotation_from_z
 from ncfix.geometry.mesh import (
     LoadedMesh,
     check_part_overlaps,
@@ -582,3 +582,20 @@ def test_first_of_each_cell_is_numpy_unique_first_index(span):
         want = np.sort(np.unique(rows, axis=0, return_index=True)[1]) if n else np.zeros(0, dtype=np.int64)
         got = first_of_each_cell(rows)
         assert got.dtype == np.int64 and np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("shape_a, shape_b", [((3,), (3,)), ((40, 3), (40, 3)), ((1, 3), (40, 3)), ((3,), (40, 3)),
+                                              ((5, 8, 3), (5, 8, 3))])
+def test_angle_between_is_the_numpy_formula_bit_for_bit(shape_a, shape_b):
+    """``angle_between_deg`` writes the cross and dot products out; the answers are those of
+    np.cross / np.linalg.norm / np.sum exactly (outputs stay byte-identical), down to 0 and 180°."""
+    rng = np.random.default_rng(7)
+    a, b = rng.normal(size=shape_a), rng.normal(size=shape_b)
+    a /= np.linalg.norm(a, axis=-1, keepdims=True)
+    b /= np.linalg.norm(b, axis=-1, keepdims=True)
+    if b.ndim == 2:
+        b[:2] = [a.reshape(-1, 3)[0], -a.reshape(-1, 3)[0]]  # parallel and opposite
+    numpy_way = np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1)))
+    got = angle_between_deg(a, b)
+    assert got.shape == numpy_way.shape and np.array_equal(got, numpy_way)
+    assert np.array_equal(angle_between_deg(a.tolist(), b.tolist()), numpy_way)  # lists as well

@@ -78,6 +78,8 @@ class Rows:
 # Runs of rows to check again that are at most this many reusable rows apart are checked as one
 # (fewer calls; the rows between get the same result again).
 MERGE_GAP = 4
+# Lines whose decimals ``as_printed`` keeps (a line's words are parsed once, not at every re-check).
+DECIMALS_KEPT = 4096
 
 
 @dataclass
@@ -203,6 +205,7 @@ class CorrectStage:
         self.detected = Detected.blank(0, len(profile.kinematics.letters), len(checker.parts))
         self.retired_seen = 0  # store.retired when the cached results were found
         self.head_corners = _head_corners(checker)
+        self._decimals: dict[bytes, dict[str, int]] = {}  # as_printed: a line's decimals per kind of word
 
     # -- stage protocol ------------------------------------------------------------------------
     def push(self, chunk):
@@ -281,9 +284,7 @@ class CorrectStage:
             previous = np.vstack([self.path.forward(w, t)[1], previous])
         step = np.zeros(b - a)
         step[b - a - len(previous):] = angle_between_deg(N[b - a - len(previous):], previous)
-        add_trace = getattr(self.report, "add_trace", None)  # TODO: report.add_trace lands with the HTML report
-        if add_trace is not None:
-            add_trace(r.line[a:b], P, angle_between_deg(N, N0), step)
+        self.report.add_trace(r.line[a:b], P, angle_between_deg(N, N0), step)
 
     # -- the work --------------------------------------------------------------------------------
     def _advance(self, end: bool) -> None:
@@ -469,7 +470,12 @@ class CorrectStage:
             line = int(r.row[row])
             if chunk.incremental[line]:
                 continue
-            decimals = printed_decimals(chunk.lines[line].decode("latin-1"), profile)
+            raw = chunk.lines[line]
+            decimals = self._decimals.get(raw)
+            if decimals is None:  # re-checks ask again for the same lines
+                if len(self._decimals) >= DECIMALS_KEPT:
+                    self._decimals.clear()
+                decimals = self._decimals[raw] = printed_decimals(raw.decode("latin-1"), profile)
             inch = MM_PER_INCH if chunk.inch[line] else 1.0
             for k in np.nonzero(written[i])[0].tolist():
                 scale = inch if linear[k] else 1.0
