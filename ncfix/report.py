@@ -157,6 +157,7 @@ class Report:
     collisions: list[dict[str, Any]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     details: list[str] = field(default_factory=list)  # shown with -v (e.g. the head model's counts)
+    notes: list[str] = field(default_factory=list)  # always shown (e.g. the time of a cold CoACD run)
     diff_lines: list[tuple[int, str, str]] = field(default_factory=list)  # (line, before, after), raw text with ends
     trace: Trace = field(default_factory=Trace)
     previews: list[PartPreview] = field(default_factory=list)

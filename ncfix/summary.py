@@ -28,6 +28,8 @@ def print_summary(report: Report, verbose: bool = False, console: Console | None
     if verbose:
         for detail in report.details:
             console.print(f"  {detail}")
+    for note in report.notes:
+        console.print(f"  {note}")
     if report.options.head is not None:
         console.print(f"  {plural(s['colliding_blocks_before'], 'colliding block')} found "
                       f"({s.get('checked_samples', 0):,} poses checked; deposit: {s.get('deposit_rule')})")

@@ -232,6 +232,13 @@ def test_a_wall_beside_the_pass_is_avoided_by_both_variants(made, head, tmp_path
         # the model: built on the first solve, CoACD run once then read from the cache
         assert strategy.model is not None and strategy.pieces_count >= 1
         assert strategy.cached is (variant != "lami")
+        # a cold decomposition is told with its time (the summary prints the notes); a cached one is not
+        if variant == "lami":
+            assert len(report.notes) == 1
+            assert re.fullmatch(r"CoACD: part:wall\.stl cut into \d+ convex pieces in \d+\.\d\d s "
+                                r"\(not cached before this run\)", report.notes[0])
+        else:
+            assert report.notes == []
         assert strategy.episodes == 1 and strategy.last["unresolved"] == 0
         print(f"\nepa {variant}: {strategy.last}, decomposition {strategy.decompose_seconds:.3f} s")
 

@@ -199,6 +199,16 @@ def test_fix_summary_lists_changes_unresolved_blocks_with_reasons_and_the_verdic
         "1 colliding block could not be fixed and is left as programmed (2 of 3 fixed): exit 1")
 
 
+def test_notes_are_shown_without_verbose_details_only_with():
+    report = make_report(FIX, colliding_blocks_before=1, changed_blocks=1)
+    report.details.append("head model at 0.5 mm: 78332 balls")
+    report.notes.append("CoACD: part:mold.stl cut into 28 convex pieces in 5.34 s (not cached before this run)")
+    quiet, verbose = summary_text(report), summary_text(report, verbose=True)
+    for text in (quiet, verbose):
+        assert "\n  CoACD: part:mold.stl cut into 28 convex pieces in 5.34 s (not cached before this run)\n" in text
+    assert "head model" not in quiet and "head model at 0.5 mm" in verbose
+
+
 def test_check_summary_keeps_the_collision_table():
     report = make_report(CHECK, colliding_blocks_before=25)
     report.collisions = [{"line": n, "bodies": ["deposit"], "penetration_mm": 0.5, "clearance_mm": -0.5}

@@ -40,7 +40,7 @@ import coal
 import numpy as np
 import trimesh
 
-from ncfix.correct.decompose import decompose
+from ncfix.correct.decompose import Decomposition, decompose
 from ncfix.geometry.frames import angle_between_deg, axis_rotation
 from ncfix.geometry.near import _tri_closest
 
@@ -133,8 +133,10 @@ class EpaModel:
         bounds, vertices = [], []
         self.decompose_seconds = 0.0
         self.cached = True
+        self.decompositions: list[tuple[str, Decomposition]] = []  # per part, as ``decompose`` gave it
         for name, mesh in parts:
             result = decompose(mesh, threshold=threshold, cache_dir=cache_dir)
+            self.decompositions.append((name, result))
             self.decompose_seconds += result.seconds
             self.cached &= result.cached
             for piece in result.pieces:

@@ -145,8 +145,9 @@ class EpaStrategy:
         self.solve_seconds = 0.0
         self.last: dict = {}
 
-    def model_for(self, checker) -> EpaModel:
-        """The hull model of this checker's parts and head, built once (CoACD cached on disk)."""
+    def model_for(self, checker, report=None) -> EpaModel:
+        """The hull model of this checker's parts and head, built once (CoACD cached on disk); a
+        part decomposed now (not read from the cache) is noted in ``report`` with its time."""
         if self.model is None or self._model_of != id(checker):
             parts = [(p.name, p.mesh) for p in checker.parts]
             radius = float(checker.bead_radius_mm)
@@ -159,11 +160,15 @@ class EpaStrategy:
             self.decompose_seconds += self.model.decompose_seconds
             self.cached = self.model.cached if self.cached is None else (self.cached and self.model.cached)
             self.pieces_count = self.model.pieces_count
+            for name, result in self.model.decompositions:
+                if report is not None and not result.cached:
+                    report.notes.append(f"CoACD: {name} cut into {len(result.pieces)} convex pieces in "
+                                        f"{result.seconds:.2f} s (not cached before this run)")
         return self.model
 
     def solve(self, ep):
         started = time.perf_counter()
-        solver = _EpisodeSolver(self, self.model_for(ep.checker), ep)
+        solver = _EpisodeSolver(self, self.model_for(ep.checker, getattr(ep.stage, "report", None)), ep)
         solution = solver.run()
         left_by_epa = len(solution.unresolved)
         by_graph = False
