@@ -168,7 +168,7 @@ class EpaStrategy:
 
     def solve(self, ep):
         started = time.perf_counter()
-        solver = _EpisodeSolver(self, self.model_for(ep.checker, getattr(ep.stage, "report", None)), ep)
+        solver = _EpisodeSolver(self, self.model_for(ep.checker, ep.stage.report), ep)
         solution = solver.run()
         left_by_epa = len(solution.unresolved)
         by_graph = False

@@ -351,15 +351,14 @@ class NearSurface:
 
     triangles : (m, 3, 3) float64, the closed solid's surface
     cap_mm : balls up to this radius read one cell's list (larger ones read every triangle)
-    cell_mm : the cells' edge
+    cell_mm : the cells' edge (grown for a large mesh: ``_cell_lists``; ``self.cell_mm`` is the one used)
     """
 
     def __init__(self, triangles: np.ndarray, cap_mm: float, cell_mm: float = 2.0):
         self.triangles = np.ascontiguousarray(triangles, dtype=np.float64)
         self.cap_mm = float(cap_mm)
-        self.cell_mm = float(cell_mm)
         self.lo, self.dims, self.start, self.listed, self.cell_mm = _cell_lists(self.triangles, self.cap_mm,
-                                                                                self.cell_mm)
+                                                                                float(cell_mm))
         # The sign grid: cell-centre occupancy (the column-parity voxelizer) at SIGN_PITCH_MM.
         from ncfix.collision.voxelize import voxelize
 
