@@ -5,7 +5,9 @@ cache costs time, never a wrong answer."""
 from __future__ import annotations
 
 import io
+import struct
 import sys
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -166,6 +168,89 @@ def test_a_bad_cache_file_is_rebuilt_and_overwritten(tmp_path, garbage):
     again = cached_distance_grid(mesh, 1.0, cache_dir=tmp_path)
     _same_grid(again, built)
     assert cache.read_arrays(path, ["dist_mm"])["dist_mm"].shape == built.dist_mm.shape  # overwritten
+
+
+def _large_and_small(tmp_path: Path) -> tuple[Path, dict[str, np.ndarray]]:
+    arrays = {"big": np.arange(60_000, dtype=np.float32).reshape(30, 40, 50), "fortran": np.asfortranarray(
+        np.arange(12.0).reshape(3, 4)), "small": np.arange(5, dtype=np.int64), "scalar": np.float64(0.25)}
+    path = tmp_path / "kind-key.npz"
+    cache.write_arrays(path, arrays)
+    return path, arrays
+
+
+def test_large_cached_arrays_are_mapped_read_only_and_read_back_exactly(tmp_path, monkeypatch):
+    monkeypatch.setattr(cache, "MAP_BYTES", 64)
+    path, arrays = _large_and_small(tmp_path)
+    back = cache.read_arrays(path, list(arrays))
+    for name, array in arrays.items():
+        assert back[name].dtype == array.dtype and back[name].shape == np.shape(array)
+        np.testing.assert_array_equal(back[name], array)
+    assert type(back["big"]) is np.ndarray and not back["big"].flags.writeable  # mapped, not copied
+    assert back["fortran"].flags.f_contiguous and not back["fortran"].flags.writeable
+    assert back["small"].flags.writeable  # under MAP_BYTES: read into memory of its own
+    with pytest.raises(ValueError):
+        back["big"][0, 0, 0] = 1.0
+    with np.load(path) as plain:  # still an .npz any numpy reads
+        for name, array in arrays.items():
+            np.testing.assert_array_equal(plain[name], array)
+
+
+def test_cache_files_are_the_same_bytes_for_the_same_arrays(tmp_path):
+    first, _ = _large_and_small(tmp_path / "a")
+    second, _ = _large_and_small(tmp_path / "b")
+    assert first.read_bytes() == second.read_bytes()
+
+
+def test_an_unaligned_cache_file_is_read_not_mapped(tmp_path, monkeypatch):
+    monkeypatch.setattr(cache, "MAP_BYTES", 64)
+    arrays = {"x": np.arange(1000.0)}
+    path = tmp_path / "kind-key.npz"
+    with zipfile.ZipFile(path, "w") as archive:  # member data 1 byte past an 8-byte boundary
+        npy = io.BytesIO()
+        np.lib.format.write_array(npy, arrays["x"])
+        info = zipfile.ZipInfo("x.npy")
+        pad = (-(30 + len("x.npy") + 4)) % 64 + 1
+        info.extra = struct.pack("<HH", 0xD935, pad) + bytes(pad)
+        archive.writestr(info, npy.getvalue())
+    back = cache.read_arrays(path, ["x"])["x"]
+    np.testing.assert_array_equal(back, arrays["x"])
+    assert back.flags.writeable and back.flags.aligned  # a copy of its own
+
+
+def test_a_damaged_mapped_array_is_a_miss(tmp_path, monkeypatch):
+    monkeypatch.setattr(cache, "MAP_BYTES", 64)
+    path, arrays = _large_and_small(tmp_path)
+    data = bytearray(path.read_bytes())
+    at = data.find(np.arange(60_000, dtype=np.float32)[30_000:30_004].tobytes())
+    assert at > 0
+    data[at] ^= 0x40  # one bit in the middle of "big": the zip's CRC no longer matches
+    path.write_bytes(bytes(data))
+    assert cache.read_arrays(path, list(arrays)) is None
+    assert cache.read_arrays(path, ["small"]) is not None  # the other members are intact
+
+
+def test_compressed_cache_files_are_read_too(tmp_path, monkeypatch):
+    monkeypatch.setattr(cache, "MAP_BYTES", 64)
+    arrays = {"big": np.arange(60_000, dtype=np.float32), "small": np.arange(3)}
+    path = tmp_path / "kind-key.npz"
+    np.savez_compressed(path, **arrays)  # an older or foreign writer: members deflated, not mapped
+    back = cache.read_arrays(path, list(arrays))
+    for name, array in arrays.items():
+        np.testing.assert_array_equal(back[name], array)
+
+
+def test_a_tensor_of_a_mapped_array_shares_it_without_a_warning(tmp_path, monkeypatch):
+    torch = pytest.importorskip("torch")
+    monkeypatch.setattr(cache, "MAP_BYTES", 64)
+    path, arrays = _large_and_small(tmp_path)
+    big = cache.read_arrays(path, ["big"])["big"]
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tensor = cache.as_tensor(big)
+    assert tensor.dtype == torch.float32 and tensor.data_ptr() == big.ctypes.data
+    np.testing.assert_array_equal(tensor.numpy(), arrays["big"])
 
 
 def test_an_unwritable_cache_folder_only_costs_time(tmp_path):

@@ -43,6 +43,7 @@ import coal
 import numpy as np
 import trimesh
 
+from ncfix import cache
 from ncfix.collision import descent
 from ncfix.collision.deposit import BeadCells, BeadField, BeadStore
 from ncfix.collision.descent import HostTree
@@ -134,7 +135,7 @@ def tree_tensors(tree: SphereTree, device: str) -> TreeTensors:
     import torch
 
     def t(a, dt=torch.float64):
-        return torch.as_tensor(np.ascontiguousarray(a), dtype=dt, device=device)
+        return cache.as_tensor(np.ascontiguousarray(a), dtype=dt, device=device)
 
     width = max(1, int(tree.child_count.max()))
     children = np.full((len(tree.radius_mm), width), -1, dtype=np.int64)
@@ -229,7 +230,7 @@ class Checker:
 
     # -- the sphere-tree test ----------------------------------------------------------------
     def _tensor(self, a, dtype=None):
-        return self.torch.as_tensor(np.ascontiguousarray(a), dtype=dtype or self.torch.float64, device=self.device)
+        return cache.as_tensor(np.ascontiguousarray(a), dtype=dtype or self.torch.float64, device=self.device)
 
     def _undecided(self, tree: TreeTensors, lower_bound, C, R, lin, ang, cap: int = MAX_PAIRS_PER_POSE) -> np.ndarray:
         """(n,) bool: poses (torch C (n, 3), R (n, 3, 3), margins lin, ang (n,)) the bound cannot clear."""
@@ -489,10 +490,10 @@ class Checker:
         gathering is kept per tip for one store state and one set of pending beads, and reused
         while the ball asked for lies inside the ball gathered."""
         state = (id(store), store.count, store.retired)
-        cache = self._tip_cache
-        if cache is None or cache[0] != state or cache[1] is not pending or cache[2] is not pending_seq:
-            cache = self._tip_cache = (state, pending, pending_seq, {})
-        tips = cache[3]
+        memo = self._tip_cache
+        if memo is None or memo[0] != state or memo[1] is not pending or memo[2] is not pending_seq:
+            memo = self._tip_cache = (state, pending, pending_seq, {})
+        tips = memo[3]
         got = tips.get(key)
         if got is not None and float(np.linalg.norm(centre - got[0])) + radius <= got[1]:
             return got[2]
