@@ -7,6 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from ncfix.collision import split
 from ncfix.correct.candidates import SphereGrid, level_candidates
 from ncfix.correct.graph import LIMIT_SLACK, LayeredGraph, _dense_min, cheapest_path
 from ncfix.geometry.frames import angle_between_deg, rotation_from_z
@@ -100,6 +101,28 @@ def test_wide_steps_search_every_edge_and_banned_edges_are_avoided():
     graph.ban(2, np.array([path[1]]), np.array([path[2]]))
     again = graph.cheapest(free)
     assert again is not None and (again[1], again[2]) != (path[1], path[2])
+
+
+@pytest.mark.parametrize("threads", ["2", "5"])
+def test_the_dense_step_is_the_same_on_any_number_of_threads(monkeypatch, threads):
+    """The dense levels' targets are cut into runs for the cores (``split.map_runs``): each target
+    is searched on its own, so the costs and sources are those of one thread, bans included."""
+    grid = SphereGrid(1.0)
+    programmed = np.tile([0.0, 0.0, 1.0], (4, 1))
+    cands, valid = level_candidates(grid, programmed, 30.0)
+    rng = np.random.default_rng(7)
+    graph = LayeredGraph(cands, valid, programmed, 30.0)
+    graph.ban(2, rng.choice(np.flatnonzero(valid[1]), 200), rng.choice(np.flatnonzero(valid[2]), 300))
+    ok = valid & (rng.random(valid.shape) < 0.6)
+    cost = np.where(ok[1], rng.random(valid.shape[1]) * 10.0, np.inf)
+    monkeypatch.setenv("NCFIX_THREADS", "1")
+    best_one, back_one = graph._dense_step(2, cost, ok)
+    monkeypatch.setenv("NCFIX_THREADS", threads)
+    assert len(split.runs(int(ok[2].sum()), int(threads))) > 1
+    best, back = graph._dense_step(2, cost, ok)
+    np.testing.assert_array_equal(best, best_one)
+    np.testing.assert_array_equal(back, back_one)
+    assert np.isfinite(best_one).sum() > 100
 
 
 class _ToyEpisode:

@@ -17,6 +17,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ncfix.collision.split import map_runs
+
 # Weight of the deviation from the programmed orientation against the angular variation. Small:
 # the path stays close to what the CAM system programmed, and smoothness still dominates.
 DEVIATION_WEIGHT = 0.2
@@ -198,11 +200,17 @@ class LayeredGraph:
                 banned = np.zeros((len(dst), len(src)), dtype=np.bool_)
                 banned[i[hit], j[hit]] = True
         c = cost[src]
-        total, pick = _dense_min(np.ascontiguousarray(self.candidates[level][dst]), np.ascontiguousarray(turned),
-                                 np.ascontiguousarray(sources), c, np.argsort(c, kind="stable"),
-                                 float(self.limit[level] * LIMIT_SLACK), float(plain * LIMIT_SLACK), banned)
-        best[dst] = total
-        back[dst] = src[pick]
+        targets, order = np.ascontiguousarray(self.candidates[level][dst]), np.argsort(c, kind="stable")
+        turned, sources = np.ascontiguousarray(turned), np.ascontiguousarray(sources)
+        limit, plain = float(self.limit[level] * LIMIT_SLACK), float(plain * LIMIT_SLACK)
+
+        def run(lo: int, hi: int):  # each target on its own: the cut does not change the answer
+            return _dense_min(targets[lo:hi], turned, sources, c, order, limit, plain,
+                              banned[lo:hi] if banned.shape[0] else banned)
+
+        parts = map_runs(run, len(dst))
+        best[dst] = np.concatenate([total for total, _ in parts])
+        back[dst] = src[np.concatenate([pick for _, pick in parts])]
         return best, back
 
 
