@@ -174,19 +174,32 @@ def write_arrays(path: Path, arrays: dict[str, np.ndarray]) -> None:
     try:
         with os.fdopen(handle, "wb") as out, zipfile.ZipFile(out, "w", zipfile.ZIP_STORED) as archive:
             for name, array in arrays.items():
-                npy = io.BytesIO()
-                np.lib.format.write_array(npy, np.asanyarray(array), allow_pickle=False)
+                header, data = _npy(np.asanyarray(array))
                 info = zipfile.ZipInfo(name + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
                 info.external_attr = 0o600 << 16
+                info.file_size = len(header) + data.nbytes
                 # The .npy header is padded to a multiple of 64 bytes: align where the member starts.
                 fixed = out.tell() + 30 + len(info.filename.encode()) + 4
                 pad = -fixed % ALIGN
                 info.extra = struct.pack("<HH", PAD_FIELD_ID, pad) + bytes(pad)
-                archive.writestr(info, npy.getbuffer())
+                with archive.open(info, "w") as member:  # the data straight from the array, not copied
+                    member.write(header)
+                    member.write(data)
         os.replace(temp, path)
     except BaseException:
         os.unlink(temp)
         raise
+
+
+def _npy(array: np.ndarray) -> tuple[bytes, memoryview]:
+    """An array as ``np.save`` writes it: its .npy header and its data (the array's own bytes)."""
+    if array.dtype.hasobject:
+        raise ValueError("object arrays are not cached")
+    header = io.BytesIO()
+    meta = np.lib.format.header_data_from_array_1_0(array)
+    np.lib.format.write_array_header_1_0(header, meta)
+    data = array.T if meta["fortran_order"] else np.ascontiguousarray(array)
+    return header.getvalue(), memoryview(data.reshape(-1)).cast("B")
 
 
 def cached(kind: str, key: str, names: Iterable[str], build: Callable[[], T],

@@ -201,6 +201,19 @@ def test_cache_files_are_the_same_bytes_for_the_same_arrays(tmp_path):
     assert first.read_bytes() == second.read_bytes()
 
 
+def test_cache_members_are_the_bytes_np_save_writes(tmp_path):
+    arrays = {"c": np.arange(12.0).reshape(3, 4), "f": np.asfortranarray(np.arange(12.0).reshape(3, 4)),
+              "strided": np.arange(9, dtype=np.int32)[::2], "scalar": np.float64(0.5), "empty": np.zeros((0, 3)),
+              "flag": np.array(True)}
+    path = tmp_path / "kind-key.npz"
+    cache.write_arrays(path, arrays)
+    with zipfile.ZipFile(path) as archive:
+        for name, array in arrays.items():
+            expected = io.BytesIO()
+            np.save(expected, array)
+            assert archive.read(name + ".npy") == expected.getvalue(), name
+
+
 def test_an_unaligned_cache_file_is_read_not_mapped(tmp_path, monkeypatch):
     monkeypatch.setattr(cache, "MAP_BYTES", 64)
     arrays = {"x": np.arange(1000.0)}
