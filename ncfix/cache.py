@@ -31,8 +31,8 @@ import importlib.metadata
 import io
 import json
 import os
-import tempfile
 import struct
+import tempfile
 import time
 import warnings
 import zipfile
