@@ -34,7 +34,6 @@ import os
 import struct
 import tempfile
 import time
-import warnings
 import zipfile
 import zlib
 from pathlib import Path
@@ -111,10 +110,13 @@ def path_for(kind: str, key: str, folder: str | os.PathLike[str] | None = None) 
 def read_arrays(path: Path, names: Iterable[str]) -> dict[str, np.ndarray] | None:
     """The named arrays of an ``.npz``, or None when the file is missing, unreadable or lacks one.
 
-    Arrays of ``MAP_BYTES`` or more are mapped from the file, read-only, not copied: a run reads
-    ~100 MB of grids and trees and touches a small part of them, and copying them into fresh
-    memory took 0.1-0.6 s of a run on the 2-core machine (page faults). Each mapped member's CRC
-    is checked as ``np.load`` would (a damaged file is a miss, never a wrong grid).
+    Arrays of ``MAP_BYTES`` or more are mapped from the file, not copied: a run reads ~100 MB of
+    grids and trees and touches a small part of them, and copying them into fresh memory took
+    0.1-0.6 s of a run on the 2-core machine (page faults). The mapping is copy-on-write: the
+    arrays are writable like built ones (numba compiles other kernels for read-only arrays: 18 s
+    more on the first run that read the cache), and a write stays in this process, never reaches
+    the file. Each mapped member's CRC is checked as ``np.load`` would (a damaged file is a miss,
+    never a wrong grid).
     """
     if not path.is_file():
         return None
@@ -145,22 +147,11 @@ def _member(path: Path, archive: zipfile.ZipFile, raw: BinaryIO, name: str) -> n
                 raise ValueError(f"{path}: {name} is shorter than its header says")
             if zlib.crc32(np.memmap(path, dtype=np.uint8, mode="r", offset=start, shape=(info.file_size,))) != info.CRC:
                 raise ValueError(f"{path}: {name} fails its CRC")
-            mapped = np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape,
+            mapped = np.memmap(path, dtype=dtype, mode="c", offset=offset, shape=shape,
                                order="F" if fortran_order else "C")
-            return mapped.view(np.ndarray)  # a plain read-only array; the mapping lives as long as it does
+            return mapped.view(np.ndarray)  # a plain array; the mapping lives as long as it does
     with archive.open(info) as member:  # small, compressed or unaligned (an older writer): read, CRC checked
         return np.lib.format.read_array(member, allow_pickle=False)
-
-
-def as_tensor(array: np.ndarray, dtype=None, device="cpu"):
-    """``torch.as_tensor`` of an array that may be mapped read-only from the cache (``read_arrays``):
-    on the CPU the tensor shares the mapping, like any array's. ncfix never writes to these
-    tensors, so torch's warning about non-writable arrays is not raised to the user."""
-    import torch
-
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="The given NumPy array is not writable", category=UserWarning)
-        return torch.as_tensor(array, dtype=dtype, device=device)
 
 
 def write_arrays(path: Path, arrays: dict[str, np.ndarray]) -> None:

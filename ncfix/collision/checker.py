@@ -43,7 +43,6 @@ import coal
 import numpy as np
 import trimesh
 
-from ncfix import cache
 from ncfix.collision import descent
 from ncfix.collision.deposit import BeadCells, BeadField, BeadStore
 from ncfix.collision.descent import HostTree
@@ -135,7 +134,7 @@ def tree_tensors(tree: SphereTree, device: str) -> TreeTensors:
     import torch
 
     def t(a, dt=torch.float64):
-        return cache.as_tensor(np.ascontiguousarray(a), dtype=dt, device=device)
+        return torch.as_tensor(np.ascontiguousarray(a), dtype=dt, device=device)
 
     width = max(1, int(tree.child_count.max()))
     children = np.full((len(tree.radius_mm), width), -1, dtype=np.int64)
@@ -230,7 +229,7 @@ class Checker:
 
     # -- the sphere-tree test ----------------------------------------------------------------
     def _tensor(self, a, dtype=None):
-        return cache.as_tensor(np.ascontiguousarray(a), dtype=dtype or self.torch.float64, device=self.device)
+        return self.torch.as_tensor(np.ascontiguousarray(a), dtype=dtype or self.torch.float64, device=self.device)
 
     def _undecided(self, tree: TreeTensors, lower_bound, C, R, lin, ang, cap: int = MAX_PAIRS_PER_POSE) -> np.ndarray:
         """(n,) bool: poses (torch C (n, 3), R (n, 3, 3), margins lin, ang (n,)) the bound cannot clear."""

@@ -91,7 +91,7 @@ class DistanceGrid:
         if self._tensors is None:
             self._tensors = {}
         if key not in self._tensors:
-            dist = cache.as_tensor(self.dist_mm, device=device).reshape(-1)  # float32; gathered values widen exactly
+            dist = torch.as_tensor(self.dist_mm, device=device).reshape(-1)  # float32; gathered values widen exactly
             origin = torch.as_tensor(self.origin_mm, dtype=torch.float64, device=device)
             shape = torch.as_tensor(self.shape, dtype=torch.int64, device=device)
             box = torch.as_tensor(np.array(self._box()), dtype=torch.float64, device=device)
