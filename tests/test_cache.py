@@ -349,6 +349,18 @@ def test_the_folder_is_kept_under_its_size_least_recently_used_first(tmp_path, m
     assert not stale.exists()
 
 
+def test_a_cached_near_surface_has_the_built_ones_array_types(tmp_path):
+    """numba compiles a kernel per argument type (read-only arrays apart): a cached NearSurface
+    must reach the kernels with the types a built one has, or the first cached run compiles them
+    all again."""
+    numba = pytest.importorskip("numba")
+    triangles = trimesh.creation.icosphere(2, radius=10.0).triangles  # read-only, as trimesh gives it
+    built = cached_near_surface(triangles, 1.75, cache_dir=tmp_path)
+    cached = cached_near_surface(triangles, 1.75, cache_dir=tmp_path)
+    for name in ("triangles", "lo", "dims", "start", "listed", "inside", "sign_lo", "depth"):
+        assert numba.typeof(getattr(cached, name)) == numba.typeof(getattr(built, name)), name
+
+
 def test_a_cached_near_surface_answers_as_the_built_one(tmp_path, monkeypatch):
     head = _cone_head()
     tris = np.asarray(head.triangles, dtype=np.float64)

@@ -355,7 +355,9 @@ class NearSurface:
     """
 
     def __init__(self, triangles: np.ndarray, cap_mm: float, cell_mm: float = 2.0):
-        self.triangles = np.ascontiguousarray(triangles, dtype=np.float64)
+        # A copy of its own, writable like the cached one's (trimesh's arrays are read-only, and
+        # numba compiles other kernels for read-only arrays: 5 s more on the first cached run).
+        self.triangles = np.array(triangles, dtype=np.float64, order="C")
         self.cap_mm = float(cap_mm)
         self.lo, self.dims, self.start, self.listed, self.cell_mm = _cell_lists(self.triangles, self.cap_mm,
                                                                                 float(cell_mm))
