@@ -361,6 +361,15 @@ def test_a_cached_near_surface_has_the_built_ones_array_types(tmp_path):
         assert numba.typeof(getattr(cached, name)) == numba.typeof(getattr(built, name)), name
 
 
+def test_a_cached_grid_has_the_built_ones_array_types(tmp_path):
+    """As for the NearSurface: the kernels must get the types a built grid has."""
+    numba = pytest.importorskip("numba")
+    built = cached_distance_grid(_l_shape(), 1.0, cache_dir=tmp_path)
+    cached = cached_distance_grid(_l_shape(), 1.0, cache_dir=tmp_path)
+    for name in ("dist_mm", "origin_mm", "body_bounds_mm"):
+        assert numba.typeof(getattr(cached, name)) == numba.typeof(getattr(built, name)), name
+
+
 def test_a_cached_near_surface_answers_as_the_built_one(tmp_path, monkeypatch):
     head = _cone_head()
     tris = np.asarray(head.triangles, dtype=np.float64)

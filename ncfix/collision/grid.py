@@ -209,7 +209,8 @@ def build_distance_grid(mesh: trimesh.Trimesh, pitch_mm: float, *, closed: bool 
             marked[(slice(None),) * axis + (-1,)] = True
     dist = distance_transform(~marked, pitch_mm)
     tighten_near_body(dist, inside, mesh, origin, pitch_mm)
-    return DistanceGrid(dist, origin, float(pitch_mm), name, np.asarray(mesh.bounds, dtype=np.float64))
+    # The bounds copied: trimesh's are read-only, the cached ones writable (numba types them apart).
+    return DistanceGrid(dist, origin, float(pitch_mm), name, np.array(mesh.bounds, dtype=np.float64))
 
 
 def cached_distance_grid(mesh: trimesh.Trimesh, pitch_mm: float, *, closed: bool = True, name: str = "",
