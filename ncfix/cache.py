@@ -113,7 +113,7 @@ def read_arrays(path: Path, names: Iterable[str]) -> dict[str, np.ndarray] | Non
     Arrays of ``MAP_BYTES`` or more are mapped from the file, not copied: a run reads ~100 MB of
     grids and trees and touches a small part of them, and copying them into fresh memory took
     0.1-0.6 s of a run on the 2-core machine (page faults). The mapping is copy-on-write: the
-    arrays are writable like built ones (numba compiles other kernels for read-only arrays: 18 s
+    arrays are writable like built ones (numba compiles other kernels for read-only arrays: 14 s
     more on the first run that read the cache), and a write stays in this process, never reaches
     the file. Each mapped member's CRC is checked as ``np.load`` would (a damaged file is a miss,
     never a wrong grid).
@@ -128,30 +128,37 @@ def read_arrays(path: Path, names: Iterable[str]) -> dict[str, np.ndarray] | Non
 
 
 def _member(path: Path, archive: zipfile.ZipFile, raw: BinaryIO, name: str) -> np.ndarray:
-    """One ``.npy`` member of an ``.npz``: mapped when stored uncompressed, aligned (``write_arrays``
-    aligns them) and at least ``MAP_BYTES``; else read into memory of its own."""
+    """One ``.npy`` member of an ``.npz``: mapped when ``_mapped`` can, else read into memory of
+    its own (small, compressed or unaligned: an older writer), its CRC checked by zipfile."""
     info = archive.getinfo(name + ".npy")
-    if info.compress_type == zipfile.ZIP_STORED:
-        raw.seek(info.header_offset)
-        local = raw.read(30)  # the member's local header: signature ... name length, extra length
-        if local[:4] != b"PK\x03\x04":
-            raise ValueError(f"{path}: bad local header of {name}")
-        start = info.header_offset + 30 + sum(struct.unpack("<HH", local[26:30]))
-        raw.seek(start)
-        version = np.lib.format.read_magic(raw)
-        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-        shape, fortran_order, dtype = read_header(raw)
-        offset, nbytes = raw.tell(), int(np.prod(shape)) * dtype.itemsize
-        if nbytes >= MAP_BYTES and not dtype.hasobject and offset % dtype.alignment == 0:
-            if offset + nbytes > start + info.file_size:
-                raise ValueError(f"{path}: {name} is shorter than its header says")
-            if zlib.crc32(np.memmap(path, dtype=np.uint8, mode="r", offset=start, shape=(info.file_size,))) != info.CRC:
-                raise ValueError(f"{path}: {name} fails its CRC")
-            mapped = np.memmap(path, dtype=dtype, mode="c", offset=offset, shape=shape,
-                               order="F" if fortran_order else "C")
-            return mapped.view(np.ndarray)  # a plain array; the mapping lives as long as it does
-    with archive.open(info) as member:  # small, compressed or unaligned (an older writer): read, CRC checked
+    mapped = _mapped(path, raw, info) if info.compress_type == zipfile.ZIP_STORED else None
+    if mapped is not None:
+        return mapped
+    with archive.open(info) as member:
         return np.lib.format.read_array(member, allow_pickle=False)
+
+
+def _mapped(path: Path, raw: BinaryIO, info: zipfile.ZipInfo) -> np.ndarray | None:
+    """A stored member's array mapped copy-on-write from the file, or None when it is smaller than
+    ``MAP_BYTES`` or its data is not aligned for its dtype (``write_arrays`` aligns them)."""
+    raw.seek(info.header_offset)
+    local = raw.read(30)  # the member's local header: signature ... name length, extra length
+    if local[:4] != b"PK\x03\x04":
+        raise ValueError(f"{path}: bad local header of {info.filename}")
+    start = info.header_offset + 30 + sum(struct.unpack("<HH", local[26:30]))
+    raw.seek(start)
+    version = np.lib.format.read_magic(raw)
+    read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+    shape, fortran_order, dtype = read_header(raw)
+    offset, nbytes = raw.tell(), int(np.prod(shape)) * dtype.itemsize
+    if nbytes < MAP_BYTES or dtype.hasobject or offset % dtype.alignment != 0:
+        return None
+    if offset + nbytes > start + info.file_size:
+        raise ValueError(f"{path}: {info.filename} is shorter than its header says")
+    if zlib.crc32(np.memmap(path, dtype=np.uint8, mode="r", offset=start, shape=(info.file_size,))) != info.CRC:
+        raise ValueError(f"{path}: {info.filename} fails its CRC")
+    mapped = np.memmap(path, dtype=dtype, mode="c", offset=offset, shape=shape, order="F" if fortran_order else "C")
+    return mapped.view(np.ndarray)  # a plain array; the mapping lives as long as it does
 
 
 def write_arrays(path: Path, arrays: dict[str, np.ndarray]) -> None:
