@@ -20,7 +20,7 @@ from ncfix.collision.path import Moves
 from ncfix.correct.candidates import SphereGrid, level_candidates
 from ncfix.correct.graph import LayeredGraph
 from ncfix.correct.stage import Rechecks
-from ncfix.geometry.frames import angle_between_deg, minimal_rotation
+from ncfix.geometry.frames import angle_between_deg, minimal_rotation, tilt_azimuth_frames
 from ncfix.kinematics.base import Unreachable
 
 # A step may exceed θ only where the program's own step did: by this much at most (degrees).
@@ -82,7 +82,7 @@ class Episode:
         self.turns = np.tile(np.eye(3), (len(own), 1, 1))
         turn_deg = np.zeros(len(own))
         if self.turning.any():
-            frames = _tilt_azimuth_frames(chain)
+            frames = tilt_azimuth_frames(chain)
             q = np.einsum("nij,nkj->nik", frames[1:], frames[:-1])  # F_l · F_{l-1}^T
             self.turns[self.turning] = q[self.turning]
             turn_deg = np.degrees(np.arccos(np.clip((np.trace(q, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
@@ -590,23 +590,6 @@ class GraphStrategy:
             lv_all.append(np.full(len(take), lv)), ci_all.append(take)
         lv, ci = np.concatenate(lv_all), np.concatenate(ci_all)
         state[lv, ci] = np.where(ep.free(lv, cands[lv, ci]), 1, 2)
-
-
-def _tilt_azimuth_frames(n: np.ndarray) -> np.ndarray:
-    """(m, 3, 3) frames Rz(φ)·Ry(θ) of unit vectors n (m, 3) by tilt θ from +Z and azimuth φ about
-    Z; at the pole the azimuth of the vector before is kept (it is undefined there)."""
-    tilt = np.arccos(np.clip(n[:, 2], -1.0, 1.0))
-    azimuth = np.arctan2(n[:, 1], n[:, 0])
-    pole = np.hypot(n[:, 0], n[:, 1]) < 1e-9
-    for i in range(len(n)):
-        if pole[i]:
-            azimuth[i] = azimuth[i - 1] if i else 0.0
-    ct, st, cp, sp = np.cos(tilt), np.sin(tilt), np.cos(azimuth), np.sin(azimuth)
-    out = np.zeros((len(n), 3, 3))
-    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = cp * ct, -sp, cp * st
-    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = sp * ct, cp, sp * st
-    out[:, 2, 0], out[:, 2, 1], out[:, 2, 2] = -st, 0.0, ct
-    return out
 
 
 def blend_episode(ep: Episode, words: np.ndarray, left: np.ndarray) -> np.ndarray:

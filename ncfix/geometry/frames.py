@@ -108,3 +108,20 @@ def angle_between_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     cross = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
     dot = a0 * b0 + a1 * b1 + a2 * b2
     return np.degrees(np.arctan2(cross, dot))
+
+
+def tilt_azimuth_frames(n: np.ndarray) -> np.ndarray:
+    """(m, 3, 3) frames Rz(φ)·Ry(θ) of unit vectors n (m, 3) by tilt θ from +Z and azimuth φ about
+    Z; at the pole the azimuth of the vector before is kept (it is undefined there)."""
+    tilt = np.arccos(np.clip(n[:, 2], -1.0, 1.0))
+    azimuth = np.arctan2(n[:, 1], n[:, 0])
+    pole = np.hypot(n[:, 0], n[:, 1]) < 1e-9
+    for i in range(len(n)):
+        if pole[i]:
+            azimuth[i] = azimuth[i - 1] if i else 0.0
+    ct, st, cp, sp = np.cos(tilt), np.sin(tilt), np.cos(azimuth), np.sin(azimuth)
+    out = np.zeros((len(n), 3, 3))
+    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = cp * ct, -sp, cp * st
+    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = sp * ct, cp, sp * st
+    out[:, 2, 0], out[:, 2, 1], out[:, 2, 2] = -st, 0.0, ct
+    return out

@@ -1,0 +1,85 @@
+"""The orientation graph's objective, evaluated on a whole program: the yardstick of a correction.
+
+The graph strategy (``solve.GraphStrategy``) picks, per collision episode, the path of candidate
+orientations with the least sum of its steps plus ``DEVIATION_WEIGHT`` times each block's
+deviation from the programmed orientation (``graph.LayeredGraph``). ``path_cost`` evaluates that
+same sum on any corrected program, either strategy's output, against the program as posted:
+
+    cost = Σ step(N′) − Σ step(N) + DEVIATION_WEIGHT · Σ angle(N′ᵢ, Nᵢ)        (degrees)
+
+over consecutive motion blocks, where step is the graph's edge weight: the angle between a block's
+orientation and the one before, or, where the program itself turns by more than θ between the two
+blocks, the angle to the one before turned as the program turns (``Episode.turns``: tilt from +Z and
+azimuth about Z); the programmed path has no step there. The first term is the angular variation a
+correction adds to the program's own (negative where it smooths the program), the second how far it
+leans away from it. A program left as posted costs 0. Computed on the output as written (after
+blending, and at the printed decimals), it compares what the strategies deliver, not their
+internal searches: the graph's path is the least of this sum among its tested candidates on the
+resolution grid (the blocks it must keep colliding aside), so an EPA output that costs less is
+smoother or nearer the program than the graph's grid allowed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ncfix.correct.graph import DEVIATION_WEIGHT
+from ncfix.geometry.frames import angle_between_deg, tilt_azimuth_frames
+
+
+@dataclass(frozen=True)
+class PathCost:
+    added_variation_deg: float  # Σ step(N′) − Σ step(N)
+    deviation_deg: float  # Σ angle(N′, N)
+    deviation_weight: float = DEVIATION_WEIGHT
+
+    @property
+    def total_deg(self) -> float:
+        return self.added_variation_deg + self.deviation_weight * self.deviation_deg
+
+
+def steps_deg(vectors: np.ndarray, programmed: np.ndarray, max_step_deg: float) -> np.ndarray:
+    """(n - 1,) the graph's step weight into each block after the first: the plain angle to the
+    block before, or, where the programmed vectors turn by more than ``max_step_deg`` (θ), the angle
+    to the block before turned as the program turns there."""
+    vectors = np.asarray(vectors, dtype=np.float64)
+    programmed = np.asarray(programmed, dtype=np.float64)
+    before = vectors[:-1].copy()
+    turning = angle_between_deg(programmed[1:], programmed[:-1]) > float(max_step_deg)
+    if turning.any():
+        frames = tilt_azimuth_frames(programmed)
+        turns = np.einsum("nij,nkj->nik", frames[1:], frames[:-1])  # F_l · F_{l-1}^T
+        before[turning] = np.einsum("nij,nj->ni", turns[turning], before[turning])
+    return angle_between_deg(vectors[1:], before)
+
+
+def path_cost(programmed: np.ndarray, output: np.ndarray, max_step_deg: float,
+              deviation_weight: float = DEVIATION_WEIGHT) -> PathCost:
+    """The graph's objective of ``output`` (n, 3) unit tool vectors against ``programmed`` (n, 3),
+    the motion blocks of one program in order (module doc)."""
+    programmed = np.asarray(programmed, dtype=np.float64).reshape(-1, 3)
+    output = np.asarray(output, dtype=np.float64).reshape(-1, 3)
+    if programmed.shape != output.shape:
+        raise ValueError(f"{len(output)} output vectors for {len(programmed)} programmed ones")
+    if len(programmed) == 0:
+        return PathCost(0.0, 0.0, float(deviation_weight))
+    added = float(steps_deg(output, programmed, max_step_deg).sum() - steps_deg(programmed, programmed, max_step_deg).sum())
+    deviation = float(angle_between_deg(output, programmed).sum())
+    return PathCost(added, deviation, float(deviation_weight))
+
+
+def program_vectors(data: bytes, profile, source: str = "<program>") -> tuple[np.ndarray, np.ndarray]:
+    """(lines, N): the 1-based input line and the unit tool vector of every motion block of a
+    program whose axes are all known, as ncfix reads it with ``profile`` (a ``Profile``)."""
+    from ncfix.collision.path import PathChecker
+    from ncfix.collision.stage import MotionRows
+    from ncfix.nc.modal import Interpreter
+
+    chunk = Interpreter(profile, source).feed_chunk(data.splitlines(keepends=True), 1)
+    rows = np.nonzero(chunk.motion >= 0)[0]
+    rows = rows[np.isfinite(chunk.words[rows]).all(axis=1)]
+    path = PathChecker(None, profile, 0.0, 1.0)
+    tcp = MotionRows(path, profile, None).tcp(chunk, rows)
+    return chunk.first_lineno + rows, path.forward(path.normalise(chunk.words[rows]), tcp)[1]
