@@ -264,6 +264,57 @@ def test_random_poses_near_beads_no_misses(bead_checker, n, seed):
     assert rate < 0.02
 
 
+@pytest.mark.parametrize("cell_mm", [0.37, 1e4])
+def test_exact_bead_test_is_the_same_whatever_cells_it_skips(bead_checker, monkeypatch, cell_mm):
+    """The exact bead kernel skips the bucket cells that lie wholly outside a failing node's ball
+    or wholly below the allowance plane. With cells of 0.37 mm (most of them skipped, beads on
+    their faces) and with one cell holding every bead (none skipped), the hits, clearances,
+    candidate poses and exact tests are those of the 3 mm cells, with sweep margins and beads
+    seen from later samples too (half the poses print: beads all about the plane)."""
+    import ncfix.collision.exact_beads as exact_beads
+
+    rng = np.random.default_rng(21)
+    beads = _wall_beads(0.25)
+    store = BeadStore(1.0)
+    store.add(beads[: len(beads) // 2])
+    pending = beads[len(beads) // 2:]
+    n = 600
+    C, R = _random_bead_poses(n, seed=17)
+    # Half of them print: the tip 0-2 mm over a bead, tilted up to 25°, beads about the plane.
+    half = n // 2
+    C[:half] = beads[rng.integers(0, len(beads), half)] + np.column_stack(
+        [rng.normal(0.0, 0.5, half), rng.normal(0.0, 0.5, half), rng.uniform(0.0, 2.0, half)])
+    R[:half] = _random_rotations(rng, half, 25.0)
+    seq = rng.integers(0, n, n)
+    pending_seq = np.sort(rng.integers(0, n, len(pending)))
+    lin = np.where(rng.random(n) < 0.5, rng.uniform(0.0, 0.4, n), 0.0)
+    ang = np.where(rng.random(n) < 0.5, rng.uniform(0.0, 0.004, n), 0.0)
+
+    import ncfix.collision.checker as checker_module
+
+    kernel = checker_module.first_bead_hits
+    calls = []
+    monkeypatch.setattr(checker_module, "first_bead_hits", lambda *a, **k: calls.append(kernel(*a, **k)) or calls[-1])
+
+    def run():
+        calls.clear()
+        field = store.field(PITCH)
+        with field.overlay(pending):
+            hit, clearance = bead_checker._exact_kept(C, R, lin, ang, seq, store, pending, pending_seq, field)
+        # per pose: the kernel's hit, depth and candidate beads (after every filter), and its tests
+        return hit, clearance, [(c[0], c[1], c[2], c[3]) for c in calls]
+
+    want = run()
+    candidates = np.concatenate([c[2] for c in want[2]])
+    assert want[0].sum() > 20 and (~want[0]).sum() > 20 and candidates.sum() > 1000
+    monkeypatch.setattr(exact_beads, "CELL_MM", cell_mm)
+    got = run()
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    assert len(got[2]) == len(want[2])
+    for mine, theirs in zip(got[2], want[2]):
+        assert all(np.array_equal(a, b) for a, b in zip(mine, theirs))
+
+
 def test_retired_beads_are_still_seen_conservatively(bead_checker):
     """With room for only 512 exact centres, most of the wall is retired into the old field:
     still no misses against the exact reference on every bead, only more false alarms, and the
