@@ -6,8 +6,9 @@ names its failing nodes at ``CANDIDATE_LEVEL``; a bead can touch the clipped hea
 failing node, the cells of a bucket grid of the beads around its ball (skipping a cell that lies
 wholly outside the ball, or wholly below the tip-allowance plane by the largest margin a bead of
 the pose can need: none of its beads would pass the tests below; on a filament print's dense
-beads this halves the loop), keeps each bead once per pose (the first node that reaches it), drops beads the pose does not see yet (laid at a later
-sample), beads wholly below the tip-allowance plane, and beads the head grid's lower bound clears;
+beads this halves the loop), keeps each bead once per pose (the first node that reaches it),
+drops beads the pose does not see yet (laid at a later sample), beads wholly below the
+tip-allowance plane, and beads the head grid's lower bound clears;
 it then tests the rest exactly, smallest bound first, and stops at the pose's first touching bead
 (``ncfix.geometry.near``: exact point-triangle distances, a winding number where the bound allows
 the centre to be inside the head).
