@@ -269,8 +269,9 @@ def test_exact_bead_test_is_the_same_whatever_cells_it_skips(bead_checker, monke
     """The exact bead kernel skips the bucket cells that lie wholly outside a failing node's ball
     or wholly below the allowance plane. With cells of 0.37 mm (most of them skipped, beads on
     their faces) and with one cell holding every bead (none skipped), the hits, clearances,
-    candidate poses and exact tests are those of the 3 mm cells, with sweep margins and beads
+    each pose's candidate beads and the exact tests are those of the 3 mm cells, with sweep margins and beads
     seen from later samples too (half the poses print: beads all about the plane)."""
+    import ncfix.collision.checker as checker_module
     import ncfix.collision.exact_beads as exact_beads
 
     rng = np.random.default_rng(21)
@@ -290,19 +291,21 @@ def test_exact_bead_test_is_the_same_whatever_cells_it_skips(bead_checker, monke
     lin = np.where(rng.random(n) < 0.5, rng.uniform(0.0, 0.4, n), 0.0)
     ang = np.where(rng.random(n) < 0.5, rng.uniform(0.0, 0.004, n), 0.0)
 
-    import ncfix.collision.checker as checker_module
-
     kernel = checker_module.first_bead_hits
-    calls = []
-    monkeypatch.setattr(checker_module, "first_bead_hits", lambda *a, **k: calls.append(kernel(*a, **k)) or calls[-1])
+    calls = []  # each call's (hit, depth, candidate beads after every filter) per pose, and its tests
+
+    def recorded(*args, **kwargs):
+        calls.append(kernel(*args, **kwargs))
+        return calls[-1]
+
+    monkeypatch.setattr(checker_module, "first_bead_hits", recorded)
 
     def run():
         calls.clear()
         field = store.field(PITCH)
         with field.overlay(pending):
             hit, clearance = bead_checker._exact_kept(C, R, lin, ang, seq, store, pending, pending_seq, field)
-        # per pose: the kernel's hit, depth and candidate beads (after every filter), and its tests
-        return hit, clearance, [(c[0], c[1], c[2], c[3]) for c in calls]
+        return hit, clearance, list(calls)
 
     want = run()
     candidates = np.concatenate([c[2] for c in want[2]])
