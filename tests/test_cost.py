@@ -9,7 +9,7 @@ import pytest
 
 from ncfix.correct.cost import path_cost, program_vectors, steps_deg
 from ncfix.correct.graph import DEVIATION_WEIGHT, LIMIT_SLACK, LayeredGraph
-from ncfix.geometry.frames import angle_between_deg, tilt_azimuth_frames
+from ncfix.geometry.frames import angle_between_deg, turn_rotations
 from ncfix.profiles import load_profile
 
 
@@ -96,8 +96,7 @@ def test_the_graphs_cheapest_path_is_the_least_cost_path(turning):
     allowed[1:-1, 0] = False  # as programmed, the middle blocks collide
     turns = None
     if turning:
-        frames = tilt_azimuth_frames(programmed)
-        turns = np.concatenate([np.eye(3)[None], np.einsum("nij,nkj->nik", frames[1:], frames[:-1])])
+        turns = np.concatenate([np.eye(3)[None], turn_rotations(programmed)])
         assert (angle_between_deg(programmed[1:], programmed[:-1]) > theta).all()
     path = LayeredGraph(cands, valid, programmed, theta, turns=turns).cheapest(allowed)
     assert path is not None

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ncfix.correct.graph import DEVIATION_WEIGHT
-from ncfix.geometry.frames import angle_between_deg, tilt_azimuth_frames
+from ncfix.geometry.frames import angle_between_deg, turn_rotations
 
 
 @dataclass(frozen=True)
@@ -49,8 +49,7 @@ def steps_deg(vectors: np.ndarray, programmed: np.ndarray, max_step_deg: float) 
     before = vectors[:-1].copy()
     turning = angle_between_deg(programmed[1:], programmed[:-1]) > float(max_step_deg)
     if turning.any():
-        frames = tilt_azimuth_frames(programmed)
-        turns = np.einsum("nij,nkj->nik", frames[1:], frames[:-1])  # F_l · F_{l-1}^T
+        turns = turn_rotations(programmed)
         before[turning] = np.einsum("nij,nj->ni", turns[turning], before[turning])
     return angle_between_deg(vectors[1:], before)
 

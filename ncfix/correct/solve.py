@@ -20,7 +20,7 @@ from ncfix.collision.path import Moves
 from ncfix.correct.candidates import SphereGrid, level_candidates
 from ncfix.correct.graph import LayeredGraph
 from ncfix.correct.stage import Rechecks
-from ncfix.geometry.frames import angle_between_deg, minimal_rotation, tilt_azimuth_frames
+from ncfix.geometry.frames import angle_between_deg, minimal_rotation, turn_rotations
 from ncfix.kinematics.base import Unreachable
 
 # A step may exceed θ only where the program's own step did: by this much at most (degrees).
@@ -82,8 +82,7 @@ class Episode:
         self.turns = np.tile(np.eye(3), (len(own), 1, 1))
         turn_deg = np.zeros(len(own))
         if self.turning.any():
-            frames = tilt_azimuth_frames(chain)
-            q = np.einsum("nij,nkj->nik", frames[1:], frames[:-1])  # F_l · F_{l-1}^T
+            q = turn_rotations(chain)
             self.turns[self.turning] = q[self.turning]
             turn_deg = np.degrees(np.arccos(np.clip((np.trace(q, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
         self.step_limits = np.full(len(own), theta + STEP_SLACK_DEG)  # of the (turned) step

@@ -125,3 +125,10 @@ def tilt_azimuth_frames(n: np.ndarray) -> np.ndarray:
     out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = sp * ct, cp, sp * st
     out[:, 2, 0], out[:, 2, 1], out[:, 2, 2] = -st, 0.0, ct
     return out
+
+
+def turn_rotations(n: np.ndarray) -> np.ndarray:
+    """(m - 1, 3, 3) the rotations F_l · F_{l-1}^T taking each unit vector's tilt/azimuth frame
+    (``tilt_azimuth_frames``) to the next one's: how a sequence of vectors n (m, 3) turns."""
+    frames = tilt_azimuth_frames(n)
+    return np.einsum("nij,nkj->nik", frames[1:], frames[:-1])
