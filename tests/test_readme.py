@@ -139,7 +139,7 @@ def test_the_readme_links_the_design_pages():
         assert f"docs/{page}.md" in targets, f"README.md does not link docs/{page}.md"
 
 
-def test_docs_send_no_one_to_the_shared_folder_as_a_path_they_have():
+def test_docs_name_no_path_outside_the_clone_but_the_corpus():
     for page in [README, REPO / "BENCHMARKS.md", *sorted((REPO / "docs").glob("*.md"))]:
         text = page.read_text(encoding="utf-8")
         for match in re.finditer(r"\.\./shared/[\w./-]+", text):
