@@ -1,33 +1,10 @@
 """Whether the head comes within a distance of a part, exactly, in one compiled call.
 
-The checker's exact part test asks, for a pose the sphere tree could not clear, whether any
-triangle of the head comes within ``d`` (sweep margin + clearance) of a triangle of the part. coal
-answers with its mesh-mesh collision test and ``d`` as the security margin: about 50 µs a pose near
-contact, most of it the traversal of two bounding-volume trees from Python, holding the GIL. Here
-the same question is answered from structures the checker already has:
-
-- The head's triangles are split until no edge is longer than ``HEAD_EDGE_MM`` (the same
-  surface; small triangles have tight balls) and put in a ball tree (``build_sphere_tree``, octree
-  levels from ``TREE_LEAF_MM``). The part's ``DistanceGrid`` lower bound clears a node whose ball
-  at the pose lies farther than ``d`` from the part (``lb(centre) > radius + d``: no point of it
-  is within d), and with it the node's triangles.
-- A triangle left (a leaf) is tested against the part triangles listed in the cell of its ball's
-  centre. As in ``NearSurface``, a cell lists every part triangle within a reach of any point of
-  the cell; the reach here is ``CAP_MM`` + the widest leaf ball, so with ``d <= CAP_MM`` every
-  part triangle within d of the leaf's triangle is listed. (A larger d goes back to coal.) Each
-  listed triangle is rejected, where it can be, by its box, its distance from the leaf's ball
-  centre and a separating face plane of either triangle (most pairs near contact are a small head
-  triangle over a large part triangle), before the exact test.
-- Two triangles are within d exactly when a vertex of one is within d of the other, an edge of one
-  within d of an edge of the other, or an edge of one crosses the other (for triangles apart, the
-  closest points are a vertex and a face or two edges; for triangles that meet, an edge of one
-  crosses the other, or they are coplanar and an edge pair or a vertex-face pair meets):
-  point-triangle distances (Ericson 5.1.5), segment-segment distances (Ericson 5.1.9) and a
-  segment-plane crossing tested by the distance of the crossing point to the triangle.
-
-Every comparison uses ``d + SLACK_MM`` (float rounding may only turn a near miss into a hit), so
-the answer is coal's up to that slack, in the direction of "collides". Containment with no
-triangles near (one body inside the other) is not this test's: the caller keeps its own.
+The checker's exact part test for the poses its sphere tree could not clear: the same answer as
+coal's mesh-mesh test with a security margin (up to ``SLACK_MM``, toward "collides"), from the
+structures the checker already has (a ball tree of the split head triangles, the part's grid and
+cell lists), without holding the GIL. How and why it is exact: docs/collision.md, "The exact part
+test".
 """
 
 from __future__ import annotations

@@ -1,44 +1,10 @@
 """Smoothing a corrected run of tool vectors with Bezier curves, never breaking the step limits.
 
-A corrector (the orientation graph) returns, for the levels 0..L-1 of an episode, unit tool
-vectors N that replace the programmed N0. They are taken from a lattice of directions about 1°
-apart, so they hold a direction and then jump by about the spacing: free of collisions, but
-jittery, and the ramps in and out are piecewise. ``blend`` keeps the levels that must stay
-(``keep``) and replaces every run of levels between two kept levels (a *span*) by a smooth curve.
-
-The correction is handled as an *offset*: the log map of N at N0 (a tangent vector whose length
-is the angle N0→N in radians), written in a 2-D frame carried along N0 by parallel transport.
-A constant offset then means "the same tilt relative to the programmed motion", so a program
-that turns does not show up as motion of the offsets. Within a span the offset follows a cubic
-Bezier in this offset plane (not a de Casteljau curve on the sphere: the programmed vectors
-move between the two kept levels, and the plane factors that motion out), mapped back to the
-sphere by the exp map at each level's own N0. The control points lie on the chord between the
-two kept offsets, so the curve is a straight segment with an easing profile e(t):
-
-    d(t) = d_a + (d_b - d_a) e(t),   e = cubic Bezier with control values 0, α, 1-β, 1.
-
-α, β ∈ [0, 1/3] make e monotone (its derivative is a Bezier with non-negative control values),
-so on a ramp from the programmed vector (d_a = 0) the offset's magnitude never steps back: no
-jitter. α = β = 0 is the smoothstep (zero velocity at both ends, peak speed 1.5× the mean);
-α, β are set from the velocity of the kept offsets beside the span (projected on the chord), so
-the angular velocity does not jump where the neighbours are kept and moving; α = β = 1/3 is
-e(t) = t (constant speed, peak 1×).
-
-Step guarantee. With α_i the programmed step into level i, a rotation by α_i moves any vector
-by at most α_i and the exp map is 1-Lipschitz on |d| ≤ π, so the step into level i is at most
-α_i + |d_i - d_{i-1}|. A schedule that spends the offset change where limit_i - α_i is large is
-therefore safe; the step actually produced is nevertheless measured, and each span tries, in
-order, until every one of its steps is within the bound:
-
-    0 "eased"          easing from the neighbours, level-uniform timing (smoothest)
-    1 "eased-budget"   the same easing, timed by the budget max(limit_i - α_i, 0)
-    2 "linear"         e(t) = t, level-uniform timing
-    3 "linear-budget"  e(t) = t, budget timing (safe by the bound above when |d_b - d_a| is
-                       at most the span's total budget)
-    4 "input"          the span's levels are copied from N (the guarantee wins over smoothness)
-
-Each step belongs to exactly one span and depends only on that span's levels and its two kept
-ends (copied from N bit for bit), so the spans are decided independently, all at once.
+The orientation graph's path holds a lattice direction and then jumps by about the resolution;
+``blend`` keeps the levels that must stay and replaces each span between them by a monotone cubic
+Bezier ease of the correction offset, falling back span by span (eased, eased-budget, linear,
+linear-budget, input) until every step is within its limit. The offsets, the easing and the step
+guarantee: docs/correction.md, "Blending".
 """
 
 from __future__ import annotations

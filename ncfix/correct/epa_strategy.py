@@ -1,55 +1,10 @@
 """The ``--strategy epa`` correction: tilt each colliding block along its GJK/EPA extraction vector, then ramp.
 
-How (seed, "EPA Algorithm" and "Algorithm and Experimental Result for GJK with Bounding Box and
-EPA"; ``ncfix.correct.epa`` does the geometry):
-
-1. *Required tilts.* For each colliding level, ``EpaModel.tilt`` rotates the tool vector about the
-   tip C in the direction of the extraction vector E (variant "fixed": E once; "lami": E again
-   at each rotated pose, combined with the previous by Lami's theorem) until ``Episode.free``
-   (the exact end-pose test, with the store's beads and the programmed beads laid up to that
-   level) accepts it, within Θ (--max-tilt). The hull model only steers; ``Episode.free`` judges.
-   A level with no free orientation found within Θ is left colliding (reported unresolved) and
-   is pinned at its programmed orientation (a fixed offset 0 that is never moved): the ramps bend
-   around it or stop at it, within θ (CONTRACT.md: unresolved blocks are left as programmed).
-2. *Ramps.* Every orientation is an *offset*: a tangent vector (radians, 2 numbers) at the
-   programmed orientation N0, in a frame carried along the programmed path (as the program turns
-   where it turns by more than θ, by the minimal rotation elsewhere), so |offset| is the tilt from
-   N0 and a constant offset follows the program. Levels with a required offset, and the poses
-   before and after the episode, are fixed; the offset may change by at most a step budget per
-   level (θ, --max-step), so the levels between are filled (``fill_offsets``): down to exactly
-   the programmed orientation and up again where the gap is long enough, else along a bent path
-   of full steps. Where two fixed offsets are too far apart for the steps between them, the
-   larger tilt wins: the smaller one is moved into the ball the larger one reaches (and that of
-   its other neighbour), by the EPA walk from there or a small grid of that ball, so the previous
-   point's result decides (the seed's "continuously adjusted" method); failing that, the fixed
-   levels off the best joinable chain are dropped (``keep_chain``; at a sharp turn between runs
-   of opposite tilts this keeps whole runs). The real steps are then measured against the
-   episode's limits; where one exceeds its limit (the program's own change of orientation adds
-   to the offsets' change), that budget shrinks.
-3. *Verification.* Ramp levels are tested with ``Episode.free`` (a failing one is tilted
-   further along E from its ramp orientation), then the whole episode is re-checked
-   (``Episode.recheck``: sweeps and the solution's own beads); a level that fails there is tilted
-   further (``bump_deg`` more per failure, its predecessor too when it fails again), and a block
-   that did not collide and fails twice goes back to the program with its predecessor
-   (``_hold``), for up to ``ROUNDS`` rounds. A level left colliding that a ramp passes through (a
-   dropped level; the level after one left colliding, whose move starts inside the collision, as
-   ``GraphStrategy``; and the colliding levels after it in a row, their moves starting where it
-   is left, pinned in the same round where a pinned pose collides itself) is pinned at its
-   programmed orientation too, and the ramps are laid out again; blocks still colliding with a
-   tilt when the rounds end are given up the same way (pinned, ``GIVEUPS`` times,
-   ``GIVEUP_ROUNDS`` more rounds each). The answer is the re-checked
-   solution leaving the fewest blocks colliding, every one of them as programmed, that makes no
-   block collide that did not (except after a block left colliding, as ``GraphStrategy``), else
-   the program as written. Pinning costs fixes: a level pinned inside a run of tilted levels
-   leaves those its ramps cannot reach within θ unresolved too (with reasons).
-4. *The graph where the walk fails.* An episode the walk leaves with blocks colliding is searched
-   again by the orientation graph (``GraphStrategy``, the same episode); its answer is kept when
-   it leaves fewer blocks colliding (then the words, the ramps and the reasons are the graph's).
-   ``epa_graph_fallback = False`` keeps the walk's answer alone (the seed's method).
-
-Approximate by design (as ``ncfix.correct.epa``): the walk is greedy, so a free orientation may be
-missed, and the tilts are small but not the smallest. With ``--pivot point`` the head turns about
-the programmed point, not the tip; E still steers it from the tip (``Episode.free`` judges).
+Four parts, in this order: the required tilts (``EpaModel.tilt`` until ``Episode.free`` accepts),
+the ramps between them as offsets carried along the programmed path (``fill_offsets``,
+``keep_chain``), the verification rounds (tilt further, pin, give up), and the orientation graph
+on the episodes the walk leaves colliding. Approximate by design: the walk is greedy; every kept
+orientation passed the conservative checker. Design: docs/correction.md, "The walk's four parts".
 """
 
 from __future__ import annotations
