@@ -1,0 +1,153 @@
+"""The S3-Slicer ring printer (`s3-deformfdm-bc`): its head-table kinematics against the program's
+own waypoint files, and words ↔ pose round trips (reference: s3-ring-kinematics.md)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from ncfix.errors import ProfileError
+from ncfix.nc.modal import Interpreter
+from ncfix.profiles import load_profile
+
+from conftest import corpus_path
+
+PROFILE = "s3-deformfdm-bc"
+WAYPOINT_LAYERS = (0, 60, 120, 180, 244)
+SINGULAR_DEG = 6.0  # the slicer writes no tilt below this (B = 0, or B held at the cone's edge)
+
+
+def ring_layers(profile) -> list[list[tuple[int, np.ndarray]]]:
+    """(line, words X Y Z C B) of the blocks that carry all of X Y Z B C A, per layer; a layer
+    starts at its `G1 F650` (layer 0) or `G1 F750` line."""
+    interp = Interpreter(profile, "ring_Gcode.txt")
+    layers: list[list[tuple[int, np.ndarray]]] = []
+    with open(corpus_path("s3_deformfdm", "ring_Gcode.txt"), "rb") as handle:
+        for lineno, raw in enumerate(handle, start=1):
+            text = raw.decode("ascii")
+            block = interp.feed(lineno, text)
+            if text.startswith(("G1 F650", "G1 F750")):
+                layers.append([])
+            elif layers and block.motion == 1 and {w[0] for w in text.split()} >= set("XYZBCA"):
+                layers[-1].append((lineno, np.array(block.words)))
+    return layers
+
+
+def waypoints(layer: int) -> tuple[np.ndarray, np.ndarray]:
+    """The layer's waypoints turned Z-up ((x, y, z) → (x, −z, y)) and its tool axes (tip → head:
+    the files store the opposite direction), unit length."""
+    data = np.loadtxt(corpus_path("s3_deformfdm", "ring_waypoint", f"{layer}.txt"))
+    points = np.stack([data[:, 0], -data[:, 2], data[:, 1]], axis=1)
+    axes = -np.stack([data[:, 3], -data[:, 5], data[:, 4]], axis=1)
+    return points, axes / np.linalg.norm(axes, axis=1, keepdims=True)
+
+
+def slicer_smoothed(points: np.ndarray, axes: np.ndarray) -> np.ndarray:
+    """The tool axes the slicer posts: 10 in-place passes of n_i ← unit(n_{i−1} + n_i/2 + n_{i+1}),
+    the first and last point and both ends of every jump (> 4 mm) held (S3_DeformFDM
+    GcodeGeneration `_cal_Dist`, `_initialSmooth`)."""
+    axes = axes.copy()
+    held = np.zeros(len(points), dtype=bool)
+    held[[0, -1]] = True
+    jumps = np.flatnonzero(np.linalg.norm(np.diff(points, axis=0), axis=1) > 4.0)
+    held[jumps] = held[jumps + 1] = True
+    for _ in range(10):
+        for i in np.flatnonzero(~held):
+            v = axes[i - 1] + 0.5 * axes[i] + axes[i + 1]
+            axes[i] = v / np.linalg.norm(v)
+    return axes
+
+
+@pytest.fixture(scope="module")
+def profile():
+    return load_profile(PROFILE)
+
+
+@pytest.fixture(scope="module")
+def layers(profile):
+    return ring_layers(profile)
+
+
+def test_the_ring_program_takes_the_poses_of_its_waypoints(profile, layers):
+    """Every block of the five waypoint layers: the tip within 0.02 mm of its waypoint; the tool
+    axis within 0.3° of the slicer's smoothed axis wherever that lies outside the slicer's 6° cone
+    (inside it the slicer writes B = 0, or holds B at ±6° across the stretch: no axis to match)."""
+    assert len(layers) == 245
+    matched = tilted = axis_checked = 0
+    for k in WAYPOINT_LAYERS:
+        points, raw_axes = waypoints(k)
+        rows = layers[k]
+        assert len(rows) == len(points), k
+        words = np.array([w for _, w in rows])
+        p, n, rot = profile.kinematics.forward(words, tcp=False)
+        tip_error = np.linalg.norm(p - points, axis=1)
+        assert tip_error.max() < 0.02, (k, rows[int(tip_error.argmax())][0], tip_error.max())
+        smoothed = slicer_smoothed(points, raw_axes)
+        outside = np.degrees(np.arccos(np.clip(smoothed[:, 2], -1.0, 1.0))) >= SINGULAR_DEG
+        angle = np.degrees(np.arccos(np.clip((n * smoothed).sum(axis=1), -1.0, 1.0)))
+        bad = outside & (angle > 0.3)
+        assert not bad.any(), (k, [rows[i][0] for i in np.flatnonzero(bad)], angle[bad])
+        b = words[:, 4]
+        # The tilted blocks the axis test leaves out are those at the cone's edge: B = ±6.00.
+        assert np.all(np.abs(np.abs(b[(np.abs(b) >= SINGULAR_DEG) & ~outside]) - SINGULAR_DEG) < 1e-9)
+        assert np.all((b == 0) | (np.abs(b) >= SINGULAR_DEG))
+        assert np.allclose(rot[:, :, 2], n) and np.allclose(np.linalg.det(rot), 1.0)
+        matched += len(rows)
+        tilted += int((np.abs(b) >= SINGULAR_DEG).sum())
+        axis_checked += int(outside.sum())
+    assert (matched, tilted, axis_checked) == (1146, 556, 532)
+
+
+def test_the_ring_map_is_the_fitted_closed_form(profile):
+    """s3-ring-kinematics.md: X = Rz(−C)·(p + 0.3 e_z) + 77.36·(0, sin B, cos B − 1) and
+    N = (−sin C sin B, cos C sin B, cos B), for any C and B (both signs)."""
+    rng = np.random.default_rng(41)
+    p = rng.uniform(-60, 60, (200, 3))
+    c, b = rng.uniform(-300, 300, 200), rng.uniform(-40, 40, 200)
+    cr, br = np.radians(c), np.radians(b)
+    q = p + [0.0, 0.0, 0.3]
+    machine = np.stack([q[:, 0] * np.cos(cr) + q[:, 1] * np.sin(cr),
+                        -q[:, 0] * np.sin(cr) + q[:, 1] * np.cos(cr) + 77.36 * np.sin(br),
+                        q[:, 2] - 77.36 * (1 - np.cos(br))], axis=1)
+    words = np.column_stack([machine, c, b])
+    p_back, n, _ = profile.kinematics.forward(words, tcp=False)
+    assert np.abs(p_back - p).max() < 1e-9
+    expected = np.stack([-np.sin(cr) * np.sin(br), np.cos(cr) * np.sin(br), np.cos(br)], axis=1)
+    assert np.abs(n - expected).max() < 1e-12
+
+
+def test_the_ring_blocks_round_trip_through_the_inverse(profile, layers):
+    """pose → words with the previous block as reference gives back the program's own words
+    (within its 2-decimal rounding) on the waypoint layers: same branch, C unwound in the layer,
+    C held where B = 0 (the pole)."""
+    kin = profile.kinematics
+    for k in WAYPOINT_LAYERS:
+        words = np.array([w for _, w in layers[k]])
+        p, n, _ = kin.forward(words, tcp=False)
+        for i in range(1, len(words)):
+            back = kin.inverse(p[i], n[i], words[i - 1], tcp=False)
+            assert np.abs(back - words[i]).max() < 1e-6, (k, layers[k][i][0], back, words[i])
+
+
+def test_a_turn_within_a_layer_is_written_unwound(profile):
+    """A pose written next to C = 170°: the new C lies within 180° of it (here 190°, not −170°)."""
+    kin = profile.kinematics
+    b, c = math.radians(20.0), math.radians(-170.0)
+    n = np.array([-math.sin(c) * math.sin(b), math.cos(c) * math.sin(b), math.cos(b)])
+    words = kin.inverse(np.array([1.0, 2.0, 3.0]), n, np.array([0.0, 0.0, 0.0, 170.0, 20.0]), tcp=False)
+    assert words[3] == pytest.approx(190.0) and words[4] == pytest.approx(20.0)
+    p_back, n_back, _ = kin.forward(words[None], tcp=False)
+    assert np.allclose(p_back[0], [1.0, 2.0, 3.0]) and np.allclose(n_back[0], n)
+
+
+def test_a_geometry_key_of_another_family_is_refused(tmp_path):
+    """`offset_mm` is table_table's: a head_table profile that gives it fails, never ignores it."""
+    text = load_profile(PROFILE).source
+    body = open(text, encoding="utf-8").read().replace("part_origin_mm", "offset_mm")
+    path = tmp_path / "ring.toml"
+    path.write_text(body)
+    with pytest.raises(ProfileError) as err:
+        load_profile(str(path))
+    assert "key 'tcp_off_geometry.offset_mm' belongs to kinematics 'table_table', not 'head_table'" in str(err.value)
