@@ -4,6 +4,7 @@ own waypoint files, and words ↔ pose round trips (reference: s3-ring-kinematic
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -151,3 +152,125 @@ def test_a_geometry_key_of_another_family_is_refused(tmp_path):
     with pytest.raises(ProfileError) as err:
         load_profile(str(path))
     assert "key 'tcp_off_geometry.offset_mm' belongs to kinematics 'table_table', not 'head_table'" in str(err.value)
+
+
+def ring_pose(words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The fitted map of s3-ring-kinematics.md inverted by hand (not through ncfix.kinematics):
+    words (n, 5) X Y Z C B → tip points and tool axes in the part frame."""
+    x, y, z, c, b = (words[:, i] for i in range(5))
+    cr, br = np.radians(c), np.radians(b)
+    y0, z0 = y - 77.36 * np.sin(br), z + 77.36 * (1 - np.cos(br)) - 0.3
+    p = np.stack([x * np.cos(cr) - y0 * np.sin(cr), x * np.sin(cr) + y0 * np.cos(cr), z0], axis=1)
+    return p, np.stack([-np.sin(cr) * np.sin(br), np.cos(cr) * np.sin(br), np.cos(br)], axis=1)
+
+
+@pytest.mark.heavy  # a fix run with a cold cache: 25 s on the busy 2-core machine
+def test_a_rewritten_block_reads_back_to_the_pose_that_was_checked(tmp_path, monkeypatch):
+    """Fix mode on a program posted for this printer: a pass at 8° tilt whose head body meets a wall
+    (all of it turned 35° about Z, so C, B and X Y Z all change). Every rewritten line states the
+    words the corrector checked (as printed), they give the same tip and axis through the fitted
+    map, the tips stay where they were (to the 2-decimal print), the lines not changed are the
+    input's bytes, and a check of the output finds nothing."""
+    import io
+
+    import trimesh
+
+    import ncfix
+    from ncfix.correct.stage import CorrectStage
+    from ncfix.nc.post import post_program
+
+    profile = load_profile(PROFILE)
+    turn = trimesh.transformations.rotation_matrix(math.radians(35.0), [0, 0, 1])[:3, :3]
+    xs = np.arange(-100.0, 101.0, 10.0)
+    points = np.stack([xs, np.zeros_like(xs), np.full_like(xs, 8.0)], axis=1) @ turn.T
+    tilt = math.radians(8.0)
+    vectors = np.tile(turn @ [0.0, -math.sin(tilt), math.cos(tilt)], (len(xs), 1))
+    data = "".join(post_program(profile, points, vectors, title="ring round trip")).encode()
+    wall = trimesh.creation.box(bounds=[[-50.0, 22.0, 30.0], [50.0, 40.0, 60.0]])
+    wall.apply_transform(trimesh.transformations.rotation_matrix(math.radians(35.0), [0, 0, 1]))
+    wall.export(tmp_path / "wall.stl")
+    head = str(Path(__file__).resolve().parents[1] / "samples" / "deposition_head.stl")
+
+    checked: dict[int, np.ndarray] = {}
+    apply = CorrectStage._apply
+
+    def spy(self, first, last, words, collided):
+        rows = np.arange(first, last + 1)
+        for row, printed in zip(rows, self.as_printed(rows, words)):
+            checked[int(self.rows.line[row])] = printed
+        return apply(self, first, last, words, collided)
+
+    monkeypatch.setattr(CorrectStage, "_apply", spy)
+    settings = dict(machine=PROFILE, head=head, part=[str(tmp_path / "wall.stl")], bead_radius=0.0, device="cpu")
+    out = io.BytesIO()
+    report = ncfix.process(io.BytesIO(data), out, **settings)
+    assert report.summary["colliding_blocks_before"] > 0 and report.exit_code == 0
+    changed = {c["line"] for c in report.changes}
+    assert changed
+
+    before, after = data.decode().splitlines(True), out.getvalue().decode().splitlines(True)
+    assert [i + 1 for i, (a, b) in enumerate(zip(before, after)) if a != b] == sorted(changed)
+    interp_in, interp_out = Interpreter(profile, "in.nc"), Interpreter(profile, "out.nc")
+    for lineno, (a, b) in enumerate(zip(before, after), start=1):
+        old, new = interp_in.feed(lineno, a), interp_out.feed(lineno, b)
+        if lineno not in changed:
+            continue
+        words = np.array(new.words)[None]
+        assert np.array_equal(words[0], checked[lineno])  # the words the corrector checked
+        p_check, n_check, _ = profile.kinematics.forward(checked[lineno][None], tcp=False)
+        p_read, n_read = ring_pose(words)
+        assert np.abs(p_read - p_check).max() < 1e-9 and np.abs(n_read - n_check).max() < 1e-12
+        p_old, _ = ring_pose(np.array(old.words)[None])
+        # --pivot tip with --standoff 6: the tip C = P + 6·N stays, to the 2-decimal print
+        tip_old = p_old + 6.0 * ring_pose(np.array(old.words)[None])[1]
+        assert np.abs(p_read + 6.0 * n_read - tip_old).max() < 0.03
+    again = ncfix.process(io.BytesIO(out.getvalue()), io.BytesIO(), check=True, **settings)
+    assert again.summary["colliding_blocks_before"] == 0
+
+
+# -- the ring as a real print: its nozzle, its platform where the printer has it ----------------
+
+def placed_platform(folder: Path, raise_mm: float = 0.0) -> str:
+    """platform_converted.stl (Y-up, top face at y = 0) as the printer has it in the part frame:
+    turned Z-up ((x, y, z) → (x, −z, y), a turn of +90° about X) and moved by −0.3 mm in Z (the
+    table's top, 0.3 mm under the slicer's frame, so under the first layer); ``raise_mm`` lifts it."""
+    import trimesh
+
+    mesh = trimesh.load(corpus_path("s3_deformfdm", "platform_converted.stl"))
+    mesh.apply_transform(trimesh.transformations.rotation_matrix(math.pi / 2, [1, 0, 0]))
+    mesh.apply_translation([0.0, 0.0, -0.3 + raise_mm])
+    path = folder / f"platform_{raise_mm:g}.stl"
+    mesh.export(path)
+    return str(path)
+
+
+def ring_print(check: bool, platform: str, out: Path):
+    import ncfix
+
+    return ncfix.process(str(corpus_path("s3_deformfdm", "ring_Gcode.txt")), str(out), machine=PROFILE,
+                         head=str(corpus_path("s3_deformfdm", "nozzle_converted.stl")), head_axis=(0.0, 1.0, 0.0),
+                         part=[platform], standoff=0.0, bead_radius=0.0, check=check, device="cpu")
+
+
+@pytest.mark.heavy  # three runs over 68,866 blocks and the 400 mm platform's grid: about 2 minutes
+def test_the_ring_prints_clear_of_its_platform_and_a_raised_platform_is_hit(tmp_path):
+    """With its nozzle (axis +Y in its mesh: --head-axis 0,1,0) and its platform, deposit model
+    off: --check flags nothing, and a fix run writes the program byte for byte. With the platform
+    1 mm higher (into the first layer) the first layer's blocks are flagged, and no other: its 334
+    printing blocks and the lift that leaves it."""
+    source = corpus_path("s3_deformfdm", "ring_Gcode.txt")
+    platform = placed_platform(tmp_path)
+    report = ring_print(True, platform, tmp_path / "check.nc")
+    assert report.summary["colliding_blocks_before"] == 0 and report.exit_code == 0
+
+    report = ring_print(False, platform, tmp_path / "fix.nc")
+    assert report.summary["colliding_blocks_before"] == 0 and report.summary["changed_blocks"] == 0
+    assert (tmp_path / "fix.nc").read_bytes() == source.read_bytes()
+
+    report = ring_print(True, placed_platform(tmp_path, raise_mm=1.0), tmp_path / "raised.nc")
+    lines = source.read_text().splitlines()
+    first, second = [i + 1 for i, text in enumerate(lines) if text in ("G1 F650", "G1 F750")][:2]
+    printing = [n for n in range(first + 1, second) if {w[0] for w in lines[n - 1].split()} >= set("XYZBCA")]
+    lift = printing[-1] + 1
+    assert lines[lift - 1].startswith("G1 Z") and len(printing) == 334
+    assert {c["line"] for c in report.collisions} == set(printing) | {lift}
