@@ -103,7 +103,8 @@ def test_the_ring_program_takes_the_poses_of_its_waypoints(profile, layers):
 
 def test_the_ring_map_is_the_fitted_closed_form(profile):
     """s3-ring-kinematics.md: X = Rz(−C)·(p + 0.3 e_z) + 77.36·(0, sin B, cos B − 1) and
-    N = (−sin C sin B, cos C sin B, cos B), for any C and B (both signs)."""
+    N = (−sin C sin B, cos C sin B, cos B), for any C and B (both signs); A is the filament."""
+    assert profile.kinematics.orientation_letters == ("C", "B") and profile.extrusion_letter == "A"
     rng = np.random.default_rng(41)
     p = rng.uniform(-60, 60, (200, 3))
     c, b = rng.uniform(-300, 300, 200), rng.uniform(-40, 40, 200)
