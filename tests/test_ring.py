@@ -165,33 +165,17 @@ def ring_pose(words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return p, np.stack([-np.sin(cr) * np.sin(br), np.cos(cr) * np.sin(br), np.cos(br)], axis=1)
 
 
-@pytest.mark.heavy  # a fix run with a cold cache: 25 s on the busy 2-core machine
-def test_a_rewritten_block_reads_back_to_the_pose_that_was_checked(tmp_path, monkeypatch):
-    """Fix mode on a program posted for this printer: a pass at 8° tilt whose head body meets a wall
-    (all of it turned 35° about Z, so C, B and X Y Z all change). Every rewritten line states the
-    words the corrector checked (as printed), they give the same tip and axis through the fitted
-    map, the tips stay where they were (to the 2-decimal print), the lines not changed are the
-    input's bytes, and a check of the output finds nothing."""
+def fix_and_read_back(data: bytes, monkeypatch, standoff: float, **settings) -> int:
+    """Fix ``data`` with this profile; every rewritten line states the words the corrector
+    checked (as printed), they give the same tip and axis through the fitted map (by hand), the
+    tips stay where they were (to the 2-decimal print: --pivot tip), the lines not changed are the
+    input's bytes, and a check of the output finds nothing. Returns the number of changed lines."""
     import io
-
-    import trimesh
 
     import ncfix
     from ncfix.correct.stage import CorrectStage
-    from ncfix.nc.post import post_program
 
     profile = load_profile(PROFILE)
-    turn = trimesh.transformations.rotation_matrix(math.radians(35.0), [0, 0, 1])[:3, :3]
-    xs = np.arange(-100.0, 101.0, 10.0)
-    points = np.stack([xs, np.zeros_like(xs), np.full_like(xs, 8.0)], axis=1) @ turn.T
-    tilt = math.radians(8.0)
-    vectors = np.tile(turn @ [0.0, -math.sin(tilt), math.cos(tilt)], (len(xs), 1))
-    data = "".join(post_program(profile, points, vectors, title="ring round trip")).encode()
-    wall = trimesh.creation.box(bounds=[[-50.0, 22.0, 30.0], [50.0, 40.0, 60.0]])
-    wall.apply_transform(trimesh.transformations.rotation_matrix(math.radians(35.0), [0, 0, 1]))
-    wall.export(tmp_path / "wall.stl")
-    head = str(Path(__file__).resolve().parents[1] / "samples" / "deposition_head.stl")
-
     checked: dict[int, np.ndarray] = {}
     apply = CorrectStage._apply
 
@@ -202,15 +186,13 @@ def test_a_rewritten_block_reads_back_to_the_pose_that_was_checked(tmp_path, mon
         return apply(self, first, last, words, collided)
 
     monkeypatch.setattr(CorrectStage, "_apply", spy)
-    settings = dict(machine=PROFILE, head=head, part=[str(tmp_path / "wall.stl")], bead_radius=0.0, device="cpu")
+    settings = dict(machine=PROFILE, standoff=standoff, bead_radius=0.0, device="cpu", **settings)
     out = io.BytesIO()
     report = ncfix.process(io.BytesIO(data), out, **settings)
     assert report.summary["colliding_blocks_before"] > 0 and report.exit_code == 0
     changed = {c["line"] for c in report.changes}
-    assert changed
-
     before, after = data.decode().splitlines(True), out.getvalue().decode().splitlines(True)
-    assert [i + 1 for i, (a, b) in enumerate(zip(before, after)) if a != b] == sorted(changed)
+    assert changed and [i + 1 for i, (a, b) in enumerate(zip(before, after)) if a != b] == sorted(changed)
     interp_in, interp_out = Interpreter(profile, "in.nc"), Interpreter(profile, "out.nc")
     for lineno, (a, b) in enumerate(zip(before, after), start=1):
         old, new = interp_in.feed(lineno, a), interp_out.feed(lineno, b)
@@ -221,12 +203,60 @@ def test_a_rewritten_block_reads_back_to_the_pose_that_was_checked(tmp_path, mon
         p_check, n_check, _ = profile.kinematics.forward(checked[lineno][None], tcp=False)
         p_read, n_read = ring_pose(words)
         assert np.abs(p_read - p_check).max() < 1e-9 and np.abs(n_read - n_check).max() < 1e-12
-        p_old, _ = ring_pose(np.array(old.words)[None])
-        # --pivot tip with --standoff 6: the tip C = P + 6·N stays, to the 2-decimal print
-        tip_old = p_old + 6.0 * ring_pose(np.array(old.words)[None])[1]
-        assert np.abs(p_read + 6.0 * n_read - tip_old).max() < 0.03
+        p_old, n_old = ring_pose(np.array(old.words)[None])
+        assert np.abs(p_read + standoff * n_read - (p_old + standoff * n_old)).max() < 0.03
+        # only position and orientation words change: the filament (A) and feed stay as written
+        assert [w for w in a.split() if w[0] not in "XYZBC"] == [w for w in b.split() if w[0] not in "XYZBC"]
     again = ncfix.process(io.BytesIO(out.getvalue()), io.BytesIO(), check=True, **settings)
     assert again.summary["colliding_blocks_before"] == 0
+    return len(changed)
+
+
+@pytest.mark.heavy  # a fix run with a cold cache: 25 s on the busy 2-core machine
+def test_a_rewritten_block_reads_back_to_the_pose_that_was_checked(tmp_path, monkeypatch):
+    """A program posted for this printer: a pass at 8° tilt whose head body meets a wall, all of
+    it turned 35° about Z, so C, B and X Y Z all change where the fix tilts the head."""
+    import trimesh
+
+    from ncfix.nc.post import post_program
+
+    profile = load_profile(PROFILE)
+    turn = trimesh.transformations.rotation_matrix(math.radians(35.0), [0, 0, 1])
+    xs = np.arange(-100.0, 101.0, 10.0)
+    points = np.stack([xs, np.zeros_like(xs), np.full_like(xs, 8.0)], axis=1) @ turn[:3, :3].T
+    tilt = math.radians(8.0)
+    vectors = np.tile(turn[:3, :3] @ [0.0, -math.sin(tilt), math.cos(tilt)], (len(xs), 1))
+    data = "".join(post_program(profile, points, vectors, title="ring round trip")).encode()
+    wall = trimesh.creation.box(bounds=[[-50.0, 22.0, 30.0], [50.0, 40.0, 60.0]])
+    wall.apply_transform(turn)
+    wall.export(tmp_path / "wall.stl")
+    head = str(Path(__file__).resolve().parents[1] / "samples" / "deposition_head.stl")
+    assert fix_and_read_back(data, monkeypatch, 6.0, head=head, part=[str(tmp_path / "wall.stl")]) > 0
+
+
+@pytest.mark.heavy  # a fix run with a cold cache: about 30 s on the busy 2-core machine
+def test_rewritten_ring_blocks_read_back_to_the_pose_that_was_checked(tmp_path, monkeypatch):
+    """The ring's own lines: its preamble and the first 35 blocks of layer 180 (B about 23°), with a
+    small block at the rim of the nozzle's cone as placed at the layer's 30th block. The rewritten
+    lines keep their A and F words and read back to the checked poses."""
+    import trimesh
+
+    profile = load_profile(PROFILE)
+    lines = corpus_path("s3_deformfdm", "ring_Gcode.txt").read_text().splitlines(True)
+    start = [i for i, text in enumerate(lines) if text.strip() in ("G1 F650", "G1 F750")][180]
+    program = lines[:10] + lines[start:start + 36]
+    interp = Interpreter(profile, "ring")
+    words = [np.array(b.words) for b in (interp.feed(n, t) for n, t in enumerate(program, 1))
+             if b.motion is not None and " X" in b.raw]
+    p, _, rot = profile.kinematics.forward(np.array(words[30])[None], tcp=False)
+    obstacle = trimesh.creation.box(bounds=[[10.8, -0.5, 6.9], [11.6, 0.5, 7.5]])  # the cone: r 11 at 7 mm
+    place = np.eye(4)
+    place[:3, :3], place[:3, 3] = rot[0], p[0]
+    obstacle.apply_transform(place)
+    obstacle.export(tmp_path / "obstacle.stl")
+    head = str(corpus_path("s3_deformfdm", "nozzle_converted.stl"))
+    assert fix_and_read_back("".join(program).encode(), monkeypatch, 0.0, head=head, head_axis=(0.0, 1.0, 0.0),
+                             part=[str(tmp_path / "obstacle.stl")]) > 0
 
 
 # -- the ring as a real print: its nozzle, its platform where the printer has it ----------------
