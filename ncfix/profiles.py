@@ -33,7 +33,13 @@ _TOP_KEYS = {
 }
 _AXIS_KEYS = {"letter", "direction", "sign", "mode", "limits_deg", "on_head"}
 _VECTOR_KEYS = {"letters", "max_tilt_deg"}
-_GEOMETRY_KEYS = {"centre_first_mm", "offset_mm", "centre_primary_mm", "table_centre_mm", "pivot_length_mm"}
+# [tcp_off_geometry] keys of each rotary family: another family's key is an error, never ignored.
+_GEOMETRY_KEYS = {
+    "table_table": {"centre_first_mm", "offset_mm", "centre_primary_mm"},
+    "head_head": {"pivot_length_mm"},
+    "head_table": {"table_centre_mm", "pivot_length_mm", "part_origin_mm"},
+    "tool_vector": set(),
+}
 _FORMAT_KEYS = {"linear", "angle", "vector", "force_decimal_point", "force_sign"}
 
 
@@ -125,7 +131,13 @@ def build_profile(data: dict[str, Any], where: str) -> Profile:
         force_sign=r.boolean(fmt_data, "format.force_sign", dialect == "heidenhain"),
     )
     geometry = r.table("tcp_off_geometry")
-    r.known_keys(geometry, _GEOMETRY_KEYS, "tcp_off_geometry.")
+    for key in set(geometry) - _GEOMETRY_KEYS[kin_name]:
+        owner = next((fam for fam, keys in _GEOMETRY_KEYS.items() if key in keys), None)
+        if owner is not None:
+            known = ", ".join(sorted(_GEOMETRY_KEYS[kin_name])) or "none"
+            raise ProfileError(f"key 'tcp_off_geometry.{key}' belongs to kinematics '{owner}', not '{kin_name}'",
+                               where=where, fix=f"{kin_name} takes: {known}")
+    r.known_keys(geometry, _GEOMETRY_KEYS[kin_name], "tcp_off_geometry.")
 
     if kin_name == "tool_vector":
         vec = r.table("vector")
@@ -150,7 +162,8 @@ def build_profile(data: dict[str, Any], where: str) -> Profile:
             transform = HeadHead(r.number(geometry, "tcp_off_geometry.pivot_length_mm", 0.0, -1e4, 1e4))
         else:
             transform = HeadTable(r.vec3(geometry, "tcp_off_geometry.table_centre_mm"),
-                                  r.number(geometry, "tcp_off_geometry.pivot_length_mm", 0.0, -1e4, 1e4))
+                                  r.number(geometry, "tcp_off_geometry.pivot_length_mm", 0.0, -1e4, 1e4),
+                                  r.vec3(geometry, "tcp_off_geometry.part_origin_mm"))
         kinematics = TwoAxisChain(axes, transform)  # type: ignore[arg-type]
 
     return Profile(

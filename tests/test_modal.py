@@ -217,7 +217,7 @@ def test_compiled_plain_reader_agrees_with_the_array_reader(name):
 
 
 def test_ring_program_reads_as_its_first_layer_waypoints():
-    """S3_DeformFDM ring: A is the filament, B/C rotate the table; waypoints are Y-up (x, y, z) → (x, -z, y)."""
+    """S3_DeformFDM ring: A is the filament, C turns the table, B tilts the head; waypoints are Y-up (x, y, z) → (x, -z, y)."""
     gcode = corpus_path("s3_deformfdm", "ring_Gcode.txt")
     waypoints = np.loadtxt(corpus_path("s3_deformfdm", "ring_waypoint", "0.txt"))
     expected = np.stack([waypoints[:, 0], -waypoints[:, 2], waypoints[:, 1]], axis=1)
