@@ -21,11 +21,9 @@ from ncfix.cli import main
 from ncfix.collision.checker import Checker
 from ncfix.collision.deposit import BeadStore
 from ncfix.collision.head import build_head_model
-from ncfix.collision.nested import Nested, mesh_bodies
 from ncfix.geometry.distance import winding_numbers
 from ncfix.geometry.mesh import load_head
 from ncfix.geometry.near import surface_distances
-from ncfix.reference import ExactReference
 
 REPO = Path(__file__).resolve().parents[1]
 HEAD = REPO / "samples" / "deposition_head.stl"
@@ -122,7 +120,13 @@ class Scene:
         pts = self.rng.uniform(lo, hi, (8000, 3))
         pts = pts[winding_numbers(pts, tris) > 0.5][:1500]
         self.interior, self.depth = pts, surface_distances(tris, pts, 2.0)
-        self.surface, face = trimesh.sample.sample_surface(head, 1500, seed=SEED)
+        area = np.asarray(head.area_faces)
+        face = self.rng.choice(len(area), 1500, p=area / area.sum())
+        u, v = self.rng.random((2, 1500, 1))
+        flip = (u + v) > 1.0
+        u, v = np.where(flip, 1.0 - u, u), np.where(flip, 1.0 - v, v)
+        t = tris[face]
+        self.surface = t[:, 0] + u * (t[:, 1] - t[:, 0]) + v * (t[:, 2] - t[:, 0])
         self.normal = np.asarray(head.face_normals)[face]
         # The part: small boxes and balls (0.2-6 mm, most smaller than the head's section), an
         # 8 mm block, and a body far away: one mesh of many bodies.

@@ -12,8 +12,9 @@ centre c and radius r is *clear* when ``lb(C + R c) > r + lin + ang·reach + cle
 when the tip moves lin and the head turns ang); a clear node clears its subtree. A pose is
 *free* when every path from the root ends in a clear node, else *undecided* (a ball fails, or
 more than MAX_PAIRS_PER_POSE nodes fail on one level). The bounds never say "collides": an
-undecided pose goes to the exact test (triangle pairs for parts, ``proximity``; the exact signed
-distance from the bead centres to the clipped head for beads), which decides. So the checker
+undecided pose goes to the exact test (triangle pairs for parts, ``proximity``, and a body of the
+part or of the head wholly inside the other, ``nested``; the exact signed distance from the bead
+centres to the clipped head for beads), which decides. So the checker
 calls a pose free only when it is free, and calls it colliding only when the exact test says so.
 
 Sweeps (``ncfix.collision.path``) are sampled at the pitch; runs of consecutive samples are first
