@@ -55,7 +55,8 @@ class MeshBodies:
 
 
 def mesh_bodies(mesh: trimesh.Trimesh) -> MeshBodies:
-    """Split a mesh into its connected bodies (faces sharing an edge)."""
+    """Split a mesh into its connected bodies (faces sharing an edge); vectorised, as a badly
+    exported part may hold many thousands of them."""
     faces = np.asarray(mesh.faces, dtype=np.int64)
     verts = np.asarray(mesh.vertices, dtype=np.float64)
     labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(faces))
@@ -63,17 +64,20 @@ def mesh_bodies(mesh: trimesh.Trimesh) -> MeshBodies:
     faces, labels = faces[order], labels[order]
     count = int(labels.max()) + 1 if len(labels) else 0
     start = np.searchsorted(labels, np.arange(count + 1)).astype(np.int64)
-    tris, probe, lo, hi, groups = verts[faces], np.empty((count, 3)), np.empty((count, 3)), np.empty((count, 3)), []
-    for b in range(count):
-        used = np.unique(faces[start[b]:start[b + 1]])
-        v = verts[used]
-        extreme = np.unique(np.concatenate([v.argmin(axis=0), v.argmax(axis=0)]))
-        rest = np.setdiff1d(np.arange(len(v)), extreme)
-        groups.append(v[np.concatenate([extreme, rest])])
-        probe[b], lo[b], hi[b] = verts[faces[start[b], 0]], v.min(axis=0), v.max(axis=0)
-    vstart = np.concatenate([[0], np.cumsum([len(g) for g in groups])]).astype(np.int64)
-    vertices = np.concatenate(groups) if groups else np.zeros((0, 3))
-    return MeshBodies(np.ascontiguousarray(tris), start, probe, lo, hi, np.ascontiguousarray(vertices), vstart)
+    tris = np.ascontiguousarray(verts[faces])
+    if count == 0:
+        empty = np.zeros((0, 3))
+        return MeshBodies(tris, start, empty, empty, empty, empty, np.zeros(1, dtype=np.int64))
+    lo = np.minimum.reduceat(tris.min(axis=1), start[:-1])
+    hi = np.maximum.reduceat(tris.max(axis=1), start[:-1])
+    probe = tris[start[:-1], 0]
+    # Each body's vertices (a vertex where bodies touch belongs to each), extreme ones first.
+    pairs = np.unique(np.column_stack([np.repeat(labels, 3), faces.reshape(-1)]), axis=0)
+    body, v = pairs[:, 0], verts[pairs[:, 1]]
+    extreme = ((v == lo[body]) | (v == hi[body])).any(axis=1)
+    pairs = pairs[np.lexsort((~extreme, body))]
+    vstart = np.searchsorted(pairs[:, 0], np.arange(count + 1)).astype(np.int64)
+    return MeshBodies(tris, start, probe, lo, hi, np.ascontiguousarray(verts[pairs[:, 1]]), vstart)
 
 
 class Nested:
