@@ -1,11 +1,16 @@
 """Exact reference check of head poses against part meshes and deposited beads (tests, benchmarks).
 
 Parts: coal BVH mesh-vs-mesh. A pose collides when a head triangle meets a part triangle, or when
-one body lies wholly inside the other (one vertex tested by its generalised winding number), so
-the yes/no answer is exact. Separated poses get the exact mesh-to-mesh distance. For colliding
-poses the negative number is the deepest penetration found: the deepest head vertex inside a
-part and the deepest part vertex inside the head. It is a lower bound on the true penetration
-depth (which is not well defined for non-convex bodies); only its sign is exact.
+a body lies wholly inside the other mesh: mesh-mesh collision tests triangles only, so each
+connected body of the part (a mesh may hold several: fixtures, parts exported together) and of
+the head is tested on its own, one vertex of it by its generalised winding number with respect
+to the whole other mesh (a body in a hollow part's cavity is outside it). With no triangles
+meeting, a body lies wholly inside or wholly outside, so the yes/no answer is exact. An open part
+(``open_parts``) has no inside: only its bodies inside the head count. Separated poses get the
+exact mesh-to-mesh distance. For colliding poses the negative number is the deepest penetration
+found: the deepest head vertex inside a part and the deepest part vertex inside the head. It is
+a lower bound on the true penetration depth (which is not well defined for non-convex bodies);
+only its sign is exact.
 
 Beads: spheres, checked analytically against the head above the tip allowance (the head clipped
 by the plane z = tip_allowance_mm in the head frame with manifold3d, so it stays a closed solid).
@@ -16,7 +21,7 @@ a head-frame point x is at C + R @ x in the workpiece.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 
 import coal
@@ -25,34 +30,8 @@ import trimesh
 
 from ncfix.geometry.distance import point_mesh_distance, winding_numbers
 
-
-# An extreme vertex this far (mm) outside a box is outside it whatever the rounding of the placing.
-_NEST_SLACK_MM = 1e-9
-
-
-def _cannot_nest(c, r, extremes, lo, hi, span):  # pragma: no cover - compiled
-    """True only when ``_nested``'s two box tests both fail: an extreme head vertex placed at
-    (c, r) lies more than the slack outside the part's box (lo, hi), and the part's box is wider
-    than the head's span. One compiled call instead of a few numpy ones (the usual answer)."""
-    for a in range(3):
-        if hi[a] - lo[a] > span:
-            break
-    else:
-        return False  # the part may fit inside the head: the full test decides
-    for i in range(extremes.shape[0]):
-        for a in range(3):
-            w = c[a] + r[a, 0] * extremes[i, 0] + r[a, 1] * extremes[i, 1] + r[a, 2] * extremes[i, 2]
-            if w < lo[a] - _NEST_SLACK_MM or w > hi[a] + _NEST_SLACK_MM:
-                return True
-    return False
-
-
-try:
-    from numba import njit as _njit
-
-    _cannot_nest = _njit(cache=True, nogil=True)(_cannot_nest)
-except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
-    pass
+# Boxes that rule out a body widened by this (mm): a vertex moved by a pose is off by ~1e-13 mm.
+_BOX_SLACK_MM = 1e-9
 
 
 def _bvh(mesh: trimesh.Trimesh) -> coal.BVHModelOBBRSS:
@@ -64,22 +43,36 @@ def _bvh(mesh: trimesh.Trimesh) -> coal.BVHModelOBBRSS:
     return model
 
 
+def _body_probes(mesh: trimesh.Trimesh) -> np.ndarray:
+    """(k, 3): one vertex of each connected body of a mesh (faces sharing an edge)."""
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(faces))
+    first = np.unique(labels, return_index=True)[1]
+    return np.asarray(mesh.vertices, dtype=np.float64)[faces[first, 0]]
+
+
+def _in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The points (n, 3) inside the box [lo, hi] widened by _BOX_SLACK_MM."""
+    keep = ((points >= lo - _BOX_SLACK_MM) & (points <= hi + _BOX_SLACK_MM)).all(axis=1)
+    return points[keep]
+
+
 @dataclass
 class _Part:
     name: str
     mesh: trimesh.Trimesh
     bvh: coal.BVHModelOBBRSS
-    probe: np.ndarray  # (3,) one vertex, for the containment test
-    lo: np.ndarray  # (3,) its bounding box
-    hi: np.ndarray
+    closed: bool  # bounds a volume (an open part is a surface: nothing is inside it)
+    probes: np.ndarray  # (k, 3) one vertex of each connected body
 
 
 class ExactReference:
     """Exact clearance of a head pose to part meshes and to bead spheres.
 
     head : closed trimesh in the head frame (tip at the origin, axis +Z)
-    parts : name -> closed trimesh in workpiece mm
+    parts : name -> trimesh in workpiece mm
     tip_allowance_mm : the head below this height is not checked against beads
+    open_parts : names of parts that do not bound a volume (surfaces only)
     """
 
     def __init__(
@@ -88,20 +81,16 @@ class ExactReference:
         parts: Mapping[str, trimesh.Trimesh],
         *,
         tip_allowance_mm: float = 1.0,
+        open_parts: Collection[str] = (),
     ):
         self.head = head
         self._head_bvh = _bvh(head)
         self._head_triangles = np.asarray(head.triangles, dtype=np.float64)
         self._head_vertices = np.asarray(head.vertices, dtype=np.float64)
-        # For ``_nested``'s quick proofs: the head's vertices extreme along its own axes (if one
-        # of them lies outside a box, so does the head), and a bound on its extent along any
-        # direction (twice the largest distance of a vertex from the centroid).
-        v = self._head_vertices
-        self._head_extremes = v[np.unique(np.concatenate([v.argmin(axis=0), v.argmax(axis=0)]))]
-        self._head_span = 2.0 * float(np.linalg.norm(v - v.mean(axis=0), axis=1).max())
+        self._head_probes = _body_probes(head)
+        self._head_lo, self._head_hi = np.array(head.bounds, dtype=np.float64)
         self.parts = [
-            _Part(name, mesh, _bvh(mesh), np.asarray(mesh.vertices[0], dtype=np.float64),
-                  *np.array(mesh.bounds, dtype=np.float64))
+            _Part(name, mesh, _bvh(mesh), name not in open_parts, _body_probes(mesh))
             for name, mesh in parts.items()
         ]
         self.tip_allowance_mm = float(tip_allowance_mm)
@@ -127,7 +116,7 @@ class ExactReference:
             cres = coal.CollisionResult()
             hit = coal.collide(self._head_bvh, head_tf, part.bvh, identity, self._creq, cres) > 0
             if not hit:
-                hit = self._nested(part, c, r)
+                hit = self._contained(part, c, r)
             if hit:
                 out[part.name] = -self._depth(part, c, r)
             else:
@@ -168,36 +157,28 @@ class ExactReference:
             cres = coal.CollisionResult()
             if coal.collide(self._head_bvh, head_tf, part.bvh, identity, self._creq, cres) > 0:
                 return True
-            if self._nested(part, c, r):
+            if self._contained(part, c, r):
                 return True
         return False
 
-    def _nested(self, part: _Part, c: np.ndarray, r: np.ndarray) -> bool:
-        """With no triangle pair meeting, the bodies overlap only if one holds the other. Each
-        holds the other only if its box holds the other's; the quick tests below only rule out
-        boxes that cannot (the same answers as testing every vertex, at a tenth of the cost)."""
-        part_lo, part_hi = part.lo, part.hi
-        if _cannot_nest(c, r, self._head_extremes, part_lo, part_hi, self._head_span):
+    def _contained(self, part: _Part, c: np.ndarray, r: np.ndarray) -> bool:
+        """With no triangle pair meeting: whether a body of the part lies inside the head, or a
+        body of the head inside the part (one vertex of each body, by its winding number with
+        respect to the whole other mesh; a vertex outside the other's box is outside it)."""
+        local = _in_box((part.probes - c) @ r, self._head_lo, self._head_hi)
+        if len(local) and (winding_numbers(local, self._head_triangles) > 0.5).any():
+            return True
+        if not part.closed:
             return False
-        extremes = c + self._head_extremes @ r.T
-        if (extremes >= part_lo).all() and (extremes <= part_hi).all():
-            head_world = c + self._head_vertices @ r.T
-            if (head_world >= part_lo).all() and (head_world <= part_hi).all():
-                if winding_numbers(head_world[:1], np.asarray(part.mesh.triangles))[0] > 0.5:
-                    return True
-        if (part_hi - part_lo).max() <= self._head_span:
-            head_world = c + self._head_vertices @ r.T
-            head_lo, head_hi = head_world.min(axis=0), head_world.max(axis=0)
-            if (part_lo >= head_lo).all() and (part_hi <= head_hi).all():
-                part_probe = (part.probe - c) @ r
-                return bool(winding_numbers(part_probe[None], self._head_triangles)[0] > 0.5)
-        return False
+        lo, hi = np.array(part.mesh.bounds, dtype=np.float64)
+        world = _in_box(c + self._head_probes @ r.T, lo, hi)
+        return bool(len(world) and (winding_numbers(world, np.asarray(part.mesh.triangles)) > 0.5).any())
 
     def _depth(self, part: _Part, c: np.ndarray, r: np.ndarray) -> float:
         """Deepest head vertex inside the part / part vertex inside the head (mm, >= 0)."""
         depth = 0.0
         head_world = c + self._head_vertices @ r.T
-        inside = part.mesh.contains(head_world)
+        inside = part.mesh.contains(head_world) if part.closed else np.zeros(len(head_world), dtype=bool)
         if inside.any():
             depth = max(depth, self._distance_to(part.bvh, head_world[inside]).max())
         lo, hi = head_world.min(axis=0), head_world.max(axis=0)

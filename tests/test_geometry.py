@@ -459,38 +459,78 @@ def test_reference_sees_a_part_wholly_inside_the_head(sample_head):
     assert value < 0 and hit == ["inner"]
 
 
-def test_nested_quick_proofs_give_the_answers_of_every_vertex(sample_head):
-    """``_nested`` rules out boxes with a few extreme vertices and a bound on the head's span
-    before testing every vertex: on poses where each body sometimes holds the other (a small
-    block inside the body, the head inside a large block), its answers are those of the test
-    over every vertex."""
-    from ncfix.geometry.distance import winding_numbers
+def test_reference_sees_a_body_inside_the_head_among_several_bodies_in_one_part(sample_head):
+    """Mesh-mesh collision tests triangles only: the small block inside the head touches none,
+    and a second body far away must not hide it, whichever comes first in the file."""
+    small = trimesh.creation.box(bounds=[[-2.0, -2.0, 60.0], [2.0, 2.0, 64.0]])
+    far = trimesh.creation.box(bounds=[[200.0, 0.0, 0.0], [201.0, 1.0, 1.0]])
+    for bodies in ([small, far], [far, small]):
+        ref = ExactReference(sample_head, {"two": trimesh.util.concatenate(bodies)})
+        assert ref.collides(np.zeros(3), np.eye(3))
+        assert ref.clearance(np.zeros(3), np.eye(3))[0] < 0
+        assert not ref.collides(np.array([0.0, 0.0, 100.0]), np.eye(3))
 
-    parts = {"small": trimesh.creation.box(bounds=[[-2.0, -2.0, 60.0], [2.0, 2.0, 64.0]]),
-             "large": trimesh.creation.box(bounds=[[-100.0, -100.0, -20.0], [100.0, 100.0, 160.0]])}
-    ref = ExactReference(sample_head, parts)
-    verts, tris = np.asarray(sample_head.vertices), np.asarray(sample_head.triangles)
 
-    def every_vertex(part, c, r):
-        world = c + verts @ r.T
-        lo, hi = part.mesh.bounds
-        if (world.min(axis=0) >= lo).all() and (world.max(axis=0) <= hi).all():
-            if winding_numbers(world[:1], np.asarray(part.mesh.triangles))[0] > 0.5:
-                return True
-        if (lo >= world.min(axis=0)).all() and (hi <= world.max(axis=0)).all():
-            return bool(winding_numbers(((part.probe - c) @ r)[None], tris)[0] > 0.5)
-        return False
+def test_reference_sees_the_head_inside_a_hollow_parts_wall_not_in_its_cavity(sample_head):
+    """A hollow box: two shells (the cavity's faces inward). The head inside the wall collides,
+    the head inside the cavity is free although it lies inside the outer shell."""
+    outer = trimesh.creation.box([1000.0] * 3)
+    cavity = trimesh.creation.box([400.0] * 3)
+    cavity.invert()
+    ref = ExactReference(sample_head, {"hollow": trimesh.util.concatenate([outer, cavity])})
+    assert not ref.collides(np.array([0.0, 0.0, -60.0]), np.eye(3))
+    assert ref.collides(np.array([350.0, 0.0, -60.0]), np.eye(3))
+    # An open part is a surface: nothing lies inside it.
+    shell = ExactReference(sample_head, {"shell": outer}, open_parts={"shell"})
+    assert not shell.collides(np.zeros(3), np.eye(3))
+
+
+def test_compiled_containment_answers_as_the_reference(sample_head):
+    """``nested.Nested`` (box tests, then one compiled winding number per body that passes them)
+    gives the reference's answer wherever no triangles meet (the only poses it is asked about),
+    among poses where bodies of a multi-body part lie inside the head, the head inside a large
+    block or a hollow box's wall, a body of a two-body head inside a part; for closed and open
+    parts."""
+    import coal
+
+    from ncfix.collision.nested import Nested, mesh_bodies
 
     rng = np.random.default_rng(11)
-    answers = []
-    for _ in range(400):
-        n = rng.normal(size=3) + [0.0, 0.0, 2.0]
-        r = rotation_from_z(n / np.linalg.norm(n))
-        c = rng.normal(size=3) * [30.0, 30.0, 25.0] + [0.0, 0.0, 10.0]
-        for part in ref.parts:
-            answers.append(ref._nested(part, c, r))
-            assert answers[-1] == every_vertex(part, c, r)
-    assert 40 < sum(answers) < len(answers) - 40
+    smalls = []
+    for k in range(12):
+        body = trimesh.creation.box([rng.uniform(0.5, 6.0)] * 3) if k % 2 else \
+            trimesh.creation.icosphere(1, rng.uniform(0.3, 3.0))
+        body.apply_translation(rng.uniform(-20.0, 20.0, 3) + [0.0, 0.0, 40.0])
+        smalls.append(body)
+    outer, cavity = trimesh.creation.box([600.0] * 3), trimesh.creation.box([300.0] * 3)
+    cavity.invert()
+    parts = {"smalls": trimesh.util.concatenate(smalls),
+             "large": trimesh.creation.box(bounds=[[-100.0, -100.0, -20.0], [100.0, 100.0, 160.0]]),
+             "hollow": trimesh.util.concatenate([outer, cavity])}
+    satellite = trimesh.creation.box(bounds=[[-40.0, -1.0, 9.0], [-38.0, 1.0, 11.0]])
+    for head in (sample_head, trimesh.util.concatenate([sample_head, satellite])):
+        for open_parts in ((), ("smalls", "large")):
+            ref = ExactReference(head, parts, open_parts=open_parts)
+            tests = [Nested(mesh_bodies(head), mesh_bodies(mesh), name not in open_parts)
+                     for name, mesh in parts.items()]
+            answers = []
+            for k in range(300):
+                n = rng.normal(size=3) + [0.0, 0.0, 1.0]
+                r = rotation_from_z(n / np.linalg.norm(n))
+                if k % 3 == 0:  # a small body about 30-60 mm up the head's axis
+                    centre = smalls[rng.integers(len(smalls))].centroid
+                    c = centre - r @ np.array([0.0, 0.0, rng.uniform(30.0, 60.0)]) + rng.normal(size=3)
+                elif k % 3 == 1:  # in and about the large block
+                    c = rng.normal(size=3) * [40.0, 40.0, 30.0] + [0.0, 0.0, 10.0]
+                else:  # the hollow box's wall or cavity
+                    c = rng.uniform(-350.0, 350.0, 3)
+                for part, test in zip(ref.parts, tests):
+                    meet = coal.collide(ref._head_bvh, coal.Transform3s(r, c), part.bvh, coal.Transform3s(),
+                                        coal.CollisionRequest(), coal.CollisionResult()) > 0
+                    if not meet:  # (where triangles meet, either answer stands)
+                        answers.append(test(c, r))
+                        assert answers[-1] == ref._contained(part, c, r)
+            assert 40 < sum(answers) < len(answers) - 40
 
 
 def test_bead_clearance_agrees_with_trimesh_signed_distance(sample_head):

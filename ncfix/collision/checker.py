@@ -12,8 +12,9 @@ centre c and radius r is *clear* when ``lb(C + R c) > r + lin + ang·reach + cle
 when the tip moves lin and the head turns ang); a clear node clears its subtree. A pose is
 *free* when every path from the root ends in a clear node, else *undecided* (a ball fails, or
 more than MAX_PAIRS_PER_POSE nodes fail on one level). The bounds never say "collides": an
-undecided pose goes to the exact test (triangle pairs for parts, ``proximity``; the exact signed
-distance from the bead centres to the clipped head for beads), which decides. So the checker
+undecided pose goes to the exact test (triangle pairs for parts, ``proximity``, and a body of the
+part or of the head wholly inside the other, ``nested``; the exact signed distance from the bead
+centres to the clipped head for beads), which decides. So the checker
 calls a pose free only when it is free, and calls it colliding only when the exact test says so.
 
 Sweeps (``ncfix.collision.path``) are sampled at the pitch; runs of consecutive samples are first
@@ -50,6 +51,7 @@ from ncfix.collision.exact_beads import BeadBuckets, candidates_free, first_bead
 from ncfix.collision.split import thread_count
 from ncfix.collision.grid import DistanceGrid, cached_distance_grid
 from ncfix.collision.head import HeadModel, SphereTree, cached_sphere_tree
+from ncfix.collision.nested import Nested, mesh_bodies
 from ncfix.collision.proximity import cached_head_proximity
 from ncfix.geometry.near import cached_near_surface
 from ncfix.reference import ExactReference
@@ -206,7 +208,11 @@ class Checker:
         self.parts = [Part(name, cached_distance_grid(mesh, pitch_mm, closed=closed, name=name, bounds_mm=part_bounds_mm),
                            mesh) for name, mesh, closed in parts]
         self.reference = ExactReference(head, {p.name: p.mesh for p in self.parts},
-                                        tip_allowance_mm=self.tip_allowance_mm)
+                                        tip_allowance_mm=self.tip_allowance_mm,
+                                        open_parts={name for name, _, closed in parts if not closed})
+        # One body inside the other (``nested``): every connected body of the head and of each part.
+        head_bodies = mesh_bodies(head)
+        self._nested = [Nested(head_bodies, mesh_bodies(mesh), closed) for _, mesh, closed in parts]
         self._margin_request = coal.CollisionRequest()  # ``_exact_part``'s, its margin set per test
         self._proximity = [cached_head_proximity(head, p.mesh, p.grid) for p in self.parts]
         self.stats = CheckerStats()
@@ -336,24 +342,24 @@ class Checker:
     # -- parts -------------------------------------------------------------------------------
     def _exact_part(self, k: int, c: np.ndarray, r: np.ndarray, margin: float) -> bool:
         """Whether the head at (c, r) comes within ``margin`` + the clearance of part k, exactly:
-        some triangle pair within that distance, or one body inside the other. The triangle pairs
-        go to the compiled test of ``proximity`` (about half the time of coal's) while the
-        distance is within its cap, else to coal's mesh-mesh collision test with the distance as
-        its security margin (the triangle pairs closer than it collide)."""
+        some triangle pair within that distance, or a body of one inside the other (``nested``,
+        each connected body of the head and of the part on its own). The triangle pairs go to the
+        compiled test of ``proximity`` (about half the time of coal's) while the distance is
+        within its cap, else to coal's mesh-mesh collision test with the distance as its security
+        margin (the triangle pairs closer than it collide)."""
         ref = self.reference
-        part = ref.parts[k]
         need = margin + self.clearance_mm
         near = self._proximity[k]
         if need <= near.cap_mm:
-            return near.within(c, r, need) or bool(ref._nested(part, c, r))
+            return near.within(c, r, need) or self._nested[k](c, r)
         request = ref._creq
         if need > 0:
             request = self._margin_request
             request.security_margin = need
-        if coal.collide(ref._head_bvh, coal.Transform3s(r, c), part.bvh, coal.Transform3s(), request,
+        if coal.collide(ref._head_bvh, coal.Transform3s(r, c), ref.parts[k].bvh, coal.Transform3s(), request,
                         coal.CollisionResult()) > 0:
             return True
-        return bool(ref._nested(part, c, r))
+        return self._nested[k](c, r)
 
     def sweep_parts(self, C: np.ndarray, R: np.ndarray, lin: np.ndarray, ang: np.ndarray,
                     cum_lin: np.ndarray | None = None, cum_ang: np.ndarray | None = None, *,
