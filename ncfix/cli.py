@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import io
+import logging
 import os
 import stat
 import sys
@@ -68,7 +69,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.list_machines:
             return _list_machines()
         options = _options(args)
-        return _run(args, options)
+        with _notices(enabled=not options.quiet):
+            return _run(args, options)
     except NcfixError as exc:
         if verbose:
             traceback.print_exc()
@@ -88,6 +90,23 @@ def main(argv: list[str] | None = None) -> int:
 def _stderr(text: str) -> None:
     with contextlib.suppress(OSError):
         print(text, file=sys.stderr)
+
+
+@contextlib.contextmanager
+def _notices(enabled: bool) -> Iterator[None]:
+    """The library's notices (the "ncfix" logger, e.g. a cache file rebuilt) as lines on standard
+    error while the command runs; none with -q."""
+    if not enabled:
+        yield
+        return
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("ncfix: %(message)s"))
+    logger = logging.getLogger("ncfix")
+    logger.addHandler(handler)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
 
 
 def _list_machines() -> int:
