@@ -17,8 +17,8 @@ Each file also holds its own key (member ``KEY_MEMBER``) and is used only when t
 one asked for: a file that was renamed, copied over another or left by a writer without keys is
 never trusted by its name. A file whose key does not match, that cannot be read, or that holds
 other arrays than expected is rebuilt and written again, with a one-line notice on the ``ncfix``
-logger (the command line prints it on standard error). A folder that cannot be written is not an error either: the result is
-only not kept. Files are written under a temporary name and renamed, so a reader never sees half
+logger (the command line prints it on standard error). A folder that cannot be written is not an
+error either: the result is only not kept. Files are written under a temporary name and renamed, so a reader never sees half
 a file, and two runs writing the same key write the same bytes. Deleting the folder is always safe.
 
 A part's grid is cropped to what the program can reach, so each program's box gets its own grid

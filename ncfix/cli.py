@@ -33,7 +33,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("input", nargs="?", default="-", metavar="INPUT", help="NC program; '-' or nothing reads standard input")
     p.add_argument("-o", "--output", metavar="OUTPUT", help="write here (atomically) instead of standard output")
     p.add_argument("-c", "--config", metavar="PATH", help="TOML config (default ./ncfix.toml when it exists)")
-    p.add_argument("--machine", metavar="NAME|PATH", help="machine profile: built-in name or profile file (default ijk)")
+    p.add_argument("--machine", metavar="NAME|PATH", help="machine profile: built-in name, profile file, or 'auto' (chosen from the program's "
+                   "orientation words) (default ijk)")
     p.add_argument("--head", metavar="PATH", help="deposition-head mesh (STL or OBJ)")
     p.add_argument("--head-tip", metavar="X,Y,Z", help="nozzle tip in the head mesh (default 0,0,0)")
     p.add_argument("--head-axis", metavar="X,Y,Z", help="head axis, tip → head, in the mesh (default 0,0,1)")
