@@ -225,3 +225,23 @@ def test_auto_in_a_config_file(tmp_path):
     assert done.returncode == 0, done.stderr
     assert "machine: auto -> table-ac (A/C from line 2)" in done.stderr.decode()
     assert '"machine": "table-ac"' in (tmp_path / "r.json").read_text()
+
+
+# The golden fix cases (tests/cases/fix): auto picks the case's profile, or names the candidates.
+# The xyzac-trt case switches TCP on with G43.4, not with the sim's M428, so auto reads it as the
+# ISO table-ac it was posted like (under linuxcnc-xyzac-trt its TCP would stay off).
+FIX_AUTO = {"ijk": "ijk", "sinumerik-vector": "sinumerik-vector", "heidenhain-ln": "heidenhain-ln",
+            "table-ac": "table-ac", "linuxcnc-xyzac-trt": "table-ac"}
+
+
+@pytest.mark.parametrize("path", sorted((CASES / "fix").glob("fix_*")), ids=lambda p: p.name)
+def test_golden_fix_cases_are_read_by_their_profile_and_auto_names_it(path):
+    machine = path.name[len("fix_"):].split(".")[0]
+    _pass(path, machine)
+    if machine in FIX_AUTO:
+        _, _, chosen = _pass(path, "auto")
+        assert chosen == FIX_AUTO[machine]
+    else:  # a B/C program: table or head, TCP on or off, the words cannot tell
+        with pytest.raises(ProgramError, match="machine auto cannot tell which machine reads B/C: ") as caught:
+            run(io.BytesIO(path.read_bytes()), io.BytesIO(), Options(machine="auto"), path.name)
+        assert machine in str(caught.value)
