@@ -93,6 +93,7 @@ def test_each_profile_refuses_each_orientation_word_it_does_not_read(profile_nam
     ("table-ac", "M900 K0.05\n"),
     # data blocks
     ("ijk", "G10 L2 P1 X0 Y0 Z0 A0 B0\n"),
+    ("table-ac", "G92 X0 Y0 Z0 I0\nG1 X1\n"),
     # a letter without a value is no word (Heidenhain's C arc keyword)
     ("heidenhain-ln", "CC X+0 Y+0\nC X+10 Y+0 DR+\n"),
     # S3's filament on A, reset by G92

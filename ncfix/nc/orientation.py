@@ -46,9 +46,10 @@ from ncfix.profiles import Profile, builtin_names, load_profile
 DIALECT_WORDS = {"TRAORI": "sinumerik", "LN": "heidenhain"}
 # Siemens orientation words that no built-in profile reads (Euler/RPY angles, lead and tilt).
 UNREAD = ("A2", "B2", "C2", "LEAD", "TILT")
-# G codes that give I J K another meaning than a tool vector (data, threads, rotations, cycles).
+# G codes that give I J K another meaning than a tool vector (data, threads, rotations, cycles),
+# and those whose axis words are no move (dwell, homing, machine coordinates, G92).
 _IJK_PARAMETER_G = {5.0, 5.1, 5.2, 7.1, 10.0, 12.0, 13.0, 33.0, 33.1, 65.0, 66.0, 68.0, 68.1, 68.2, 68.3, 68.4, 76.0,
-                    *(81.0 + i for i in range(9)), 87.0}
+                    *(81.0 + i for i in range(9)), 4.0, 28.0, 30.0, 53.0, 92.0, 28.1, 30.1, 92.1, 92.2, 92.3}
 _DATA_G = {10.0, 65.0, 66.0}
 _VECTOR_IJK = ("I", "J", "K")
 # auto: the blocks with orientation words it reads before deciding (later blocks are still checked).
