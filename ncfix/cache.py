@@ -13,9 +13,12 @@ seconds and gives the same arrays for the same meshes and settings every time. T
   or grid builder never reads a grid the old code made. A stale grid could be wrong in the unsafe
   direction, so the key is never trusted to a version number that someone has to remember to bump.
 
-A file that cannot be read, or holds other arrays than expected, is a miss: the result is built
-and the file written again. A folder that cannot be written is not an error either: the result is
-only not kept. Files are written under a temporary name and renamed, so a reader never sees half
+Each file also holds its own key (member ``KEY_MEMBER``) and is used only when that key is the
+one asked for: a file that was renamed, copied over another or left by a writer without keys is
+never trusted by its name. A file whose key does not match, that cannot be read, or that holds
+other arrays than expected is rebuilt and written again, with a one-line notice on the ``ncfix``
+logger (the command line prints it on standard error). A folder that cannot be written is not an
+error either: the result is only not kept. Files are written under a temporary name and renamed, so a reader never sees half
 a file, and two runs writing the same key write the same bytes. Deleting the folder is always safe.
 
 A part's grid is cropped to what the program can reach, so each program's box gets its own grid
@@ -30,6 +33,7 @@ import hashlib
 import importlib.metadata
 import io
 import json
+import logging
 import os
 import struct
 import tempfile
@@ -53,6 +57,10 @@ STALE_TEMP_S = 3600.0
 MAP_BYTES = 1 << 20
 ALIGN = 64
 PAD_FIELD_ID = 0xD935
+# The member that holds a file's own key (its ASCII hex digits as uint8), checked on every read.
+KEY_MEMBER = "ncfix_key"
+
+_log = logging.getLogger("ncfix.cache")
 
 
 def cache_dir() -> Path:
@@ -205,21 +213,35 @@ def cached(kind: str, key: str, names: Iterable[str], build: Callable[[], T],
            folder: str | os.PathLike[str] | None = None) -> tuple[T, bool]:
     """``build()``'s result, read from the cache when this key was built before -> (result, hit).
 
-    ``from_arrays`` may return None for arrays that do not make a valid result (then it is a miss).
+    The file must hold this key (``KEY_MEMBER``); ``from_arrays`` may return None for arrays that
+    do not make a valid result. Either failure is a miss with a notice (module docstring).
     """
     path = path_for(kind, key, folder)
-    arrays = read_arrays(path, names)
-    if arrays is not None:
-        try:
-            result = from_arrays(arrays)
-        except Exception:  # arrays of the wrong shape or type: rebuilt like a foreign file
-            result = None
-        if result is not None:
-            _touch(path)
-            return result, True
+    names = tuple(names)
+    if path.is_file():
+        problem = "cannot be read"
+        arrays = read_arrays(path, (*names, KEY_MEMBER))
+        if arrays is None and read_arrays(path, names) is not None:
+            problem = "has no key"  # readable, but written without one: not trusted by its name
+        elif arrays is not None:
+            stored = arrays.pop(KEY_MEMBER)
+            if stored.dtype != np.uint8 or stored.tobytes() != key.encode("ascii"):
+                problem = "does not match its key"
+            else:
+                try:
+                    result = from_arrays(arrays)
+                except Exception:  # arrays of the wrong shape or type: rebuilt like a foreign file
+                    result = None
+                if result is not None:
+                    _touch(path)
+                    return result, True
+                problem = "holds other arrays than expected"
+        _log.warning("cache: %s %s (rebuilt)", path.name, problem)
     result = build()
     try:
-        write_arrays(path, to_arrays(result))
+        arrays = dict(to_arrays(result))
+        arrays[KEY_MEMBER] = np.frombuffer(key.encode("ascii"), dtype=np.uint8)
+        write_arrays(path, arrays)
     except OSError:
         return result, False  # an unwritable cache only costs time on the next run; the result is valid
     prune(path.parent, MAX_BYTES, keep=path)

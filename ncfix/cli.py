@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import io
+import logging
 import os
 import stat
 import sys
@@ -32,7 +33,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("input", nargs="?", default="-", metavar="INPUT", help="NC program; '-' or nothing reads standard input")
     p.add_argument("-o", "--output", metavar="OUTPUT", help="write here (atomically) instead of standard output")
     p.add_argument("-c", "--config", metavar="PATH", help="TOML config (default ./ncfix.toml when it exists)")
-    p.add_argument("--machine", metavar="NAME|PATH", help="machine profile: built-in name or profile file (default ijk)")
+    p.add_argument("--machine", metavar="NAME|PATH", help="machine profile: built-in name, profile file, or 'auto' (chosen from the program's "
+                   "orientation words) (default ijk)")
     p.add_argument("--head", metavar="PATH", help="deposition-head mesh (STL or OBJ)")
     p.add_argument("--head-tip", metavar="X,Y,Z", help="nozzle tip in the head mesh (default 0,0,0)")
     p.add_argument("--head-axis", metavar="X,Y,Z", help="head axis, tip → head, in the mesh (default 0,0,1)")
@@ -68,7 +70,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.list_machines:
             return _list_machines()
         options = _options(args)
-        return _run(args, options)
+        with _notices(enabled=not options.quiet):
+            return _run(args, options)
     except NcfixError as exc:
         if verbose:
             traceback.print_exc()
@@ -88,6 +91,23 @@ def main(argv: list[str] | None = None) -> int:
 def _stderr(text: str) -> None:
     with contextlib.suppress(OSError):
         print(text, file=sys.stderr)
+
+
+@contextlib.contextmanager
+def _notices(enabled: bool) -> Iterator[None]:
+    """The library's notices (the "ncfix" logger, e.g. a cache file rebuilt) as lines on standard
+    error while the command runs; none with -q."""
+    if not enabled:
+        yield
+        return
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("ncfix: %(message)s"))
+    logger = logging.getLogger("ncfix")
+    logger.addHandler(handler)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
 
 
 def _list_machines() -> int:

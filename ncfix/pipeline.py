@@ -16,6 +16,7 @@ from ncfix.nc.writer import Writer
 from ncfix.profiles import Profile, load_profile
 from ncfix.report import Report
 
+AUTO = "auto"  # --machine auto: the profile is chosen from the program (ncfix.nc.orientation)
 CHUNK_LINES = 4096  # lines read and interpreted together; memory is bounded by this and the window
 
 
@@ -126,8 +127,17 @@ def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>",
     raw lines' lengths, so it matches the input file's size at the end).
     """
     started = time.perf_counter()
-    profile = load_profile(options.machine)
+    note = None
+    if options.machine == AUTO:
+        from ncfix.nc.orientation import resolve_auto
+
+        choice, src = resolve_auto(src, source)
+        profile, note = choice.profile, choice.note
+    else:
+        profile = load_profile(options.machine)
     report = Report(input=source, machine=profile.name, options=options)
+    if note is not None:
+        report.notes.append(note)
     interpreter = Interpreter(profile, source, options.deposit_codes)
     box = program_box(src, profile, options, source) if options.head is not None and options.part else None
     stages = build_stages(options, profile, report, box)

@@ -138,7 +138,9 @@ def test_config_is_read_only_when_given_and_keywords_win(program, tmp_path, monk
     monkeypatch.chdir(tmp_path)
     (tmp_path / "ncfix.toml").write_text('[ncfix]\nmachine = "table-ac"\nstandoff = 4.5\n')
     assert ncfix.process(program, tmp_path / "o.nc").machine == "ijk"  # ./ncfix.toml is not read
-    report = ncfix.process(program, tmp_path / "o.nc", config=tmp_path / "ncfix.toml")
+    rotary = tmp_path / "rotary.nc"  # A/C words: what table-ac reads
+    rotary.write_bytes(PROGRAM.replace(b"I0 J0 K1", b"A0 C0"))
+    report = ncfix.process(rotary, tmp_path / "o.nc", config=tmp_path / "ncfix.toml")
     assert report.machine == "table-ac" and report.options.standoff == 4.5
     report = ncfix.process(program, tmp_path / "o.nc", config="ncfix.toml", machine="ijk", part=[Path("m.stl")])
     assert report.machine == "ijk" and report.options.standoff == 4.5 and report.options.part == ("m.stl",)

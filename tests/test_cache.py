@@ -170,6 +170,93 @@ def test_a_bad_cache_file_is_rebuilt_and_overwritten(tmp_path, garbage):
     assert cache.read_arrays(path, ["dist_mm"])["dist_mm"].shape == built.dist_mm.shape  # overwritten
 
 
+def _swap(a: Path, b: Path) -> None:
+    data = a.read_bytes()
+    a.write_bytes(b.read_bytes())
+    b.write_bytes(data)
+
+
+def _notices(caplog) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.name == "ncfix.cache"]
+
+
+def test_swapped_cache_files_are_rebuilt_with_a_notice(tmp_path, caplog):
+    """Two files of one kind swapped: each holds another key than its name says, so each is rebuilt
+    (the grids read back are the built ones, not each other's) and says so in one line."""
+    mesh, other = _l_shape(), _cone_head()
+    built = [build_distance_grid(m, 1.0) for m in (mesh, other)]
+    cached_distance_grid(mesh, 1.0, cache_dir=tmp_path)
+    cached_distance_grid(other, 1.0, cache_dir=tmp_path)
+    first, second = _files(tmp_path, "grid")
+    _swap(first, second)
+    with caplog.at_level("WARNING", logger="ncfix.cache"):
+        again = [cached_distance_grid(m, 1.0, cache_dir=tmp_path) for m in (mesh, other)]
+    for grid, reference in zip(again, built):
+        _same_grid(grid, reference)
+    assert sorted(_notices(caplog)) == [f"cache: {p.name} does not match its key (rebuilt)" for p in (first, second)]
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="ncfix.cache"):
+        cached_distance_grid(mesh, 1.0, cache_dir=tmp_path)  # rewritten: a plain hit now
+    assert _notices(caplog) == []
+
+
+@pytest.mark.parametrize("damage", ["truncated", "no key", "garbage"])
+def test_a_damaged_or_keyless_cache_file_is_rebuilt_with_a_notice(tmp_path, caplog, damage):
+    mesh = _l_shape()
+    built = cached_distance_grid(mesh, 1.0, cache_dir=tmp_path)
+    (path,) = _files(tmp_path, "grid")
+    if damage == "truncated":
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    elif damage == "no key":  # a file written before files held their key: the same arrays, no key
+        arrays = cache.read_arrays(path, grid_module._GRID_ARRAYS)
+        cache.write_arrays(path, {name: np.array(arrays[name]) for name in grid_module._GRID_ARRAYS})
+    else:
+        path.write_bytes(b"PK\x03\x04 not really a zip")
+    with caplog.at_level("WARNING", logger="ncfix.cache"):
+        _same_grid(cached_distance_grid(mesh, 1.0, cache_dir=tmp_path), built)
+    problem = "has no key" if damage == "no key" else "cannot be read"
+    assert _notices(caplog) == [f"cache: {path.name} {problem} (rebuilt)"]
+    key = cache.read_arrays(path, [cache.KEY_MEMBER])[cache.KEY_MEMBER].tobytes().decode()
+    assert path.name == f"grid-{key}.npz"  # rewritten, with its key
+
+
+def test_a_check_from_swapped_cache_files_is_the_cold_check(tmp_path, monkeypatch, caplog):
+    """The issue's case end to end: a warm cache whose two grid files (the part's and the clipped
+    head's) were swapped gives the cold run's colliding blocks (trusted by name it gave 38 of 42),
+    plus a notice for each."""
+    sys.path.insert(0, str(CASES))
+    import make_cases
+    from ncfix.profiles import load_profile
+
+    folder = tmp_path / "cache"
+    monkeypatch.setenv("NCFIX_CACHE", str(folder))
+    settings = {**make_cases.settings(load_profile("ijk")), "bead_radius": 1.0, "check": True}
+
+    def check() -> list:
+        return ncfix.process(CASES / "fix_ijk.nc", io.BytesIO(), **settings).collisions
+
+    cold = check()
+    first, second = _files(folder, "grid")
+    _swap(first, second)
+    with caplog.at_level("WARNING", logger="ncfix.cache"):
+        warm = check()
+    assert warm == cold and len(cold) == 42
+    assert sorted(_notices(caplog)) == [f"cache: {p.name} does not match its key (rebuilt)" for p in (first, second)]
+
+
+def test_the_command_line_prints_cache_notices_on_stderr_unless_quiet(tmp_path, capsys):
+    from ncfix import cli
+
+    mesh = _l_shape()
+    cached_distance_grid(mesh, 1.0, cache_dir=tmp_path)
+    (path,) = _files(tmp_path, "grid")
+    for enabled, expected in ((True, f"ncfix: cache: {path.name} cannot be read (rebuilt)\n"), (False, "")):
+        path.write_bytes(b"damaged")
+        with cli._notices(enabled=enabled):
+            cached_distance_grid(mesh, 1.0, cache_dir=tmp_path)
+        assert capsys.readouterr().err == expected
+
+
 def _large_and_small(tmp_path: Path) -> tuple[Path, dict[str, np.ndarray]]:
     arrays = {"big": np.arange(60_000, dtype=np.float32).reshape(30, 40, 50), "fortran": np.asfortranarray(
         np.arange(12.0).reshape(3, 4)), "small": np.arange(5, dtype=np.int64), "scalar": np.float64(0.25)}

@@ -12,6 +12,7 @@ from ncfix import __version__
 from ncfix.cli import main
 
 PROGRAM = b"%\nG21 G90\nG1 X10 Y0 Z5 I0 J0 K1 F1200\nX20 (done)\r\nM30\n%\n"
+ROTARY_PROGRAM = b"%\nG21 G90\nG1 X10 Y0 Z5 A10 C0 F1200\nX20 (done)\r\nM30\n%\n"
 
 
 def ncfix(*args, stdin=b"", cwd=None):
@@ -86,8 +87,10 @@ def test_bad_axis_word_exits_2_naming_the_line_and_writes_no_output(tmp_path):
 def test_config_file_is_read_and_command_line_wins(tmp_path, program):
     (tmp_path / "ncfix.toml").write_text('[ncfix]\nmachine = "table-ac"\nstandoff = 4.5\n')
     report = tmp_path / "r.json"
-    done = ncfix(str(program), "--report", str(report), "-q", cwd=tmp_path)
-    assert done.returncode == 0
+    rotary = tmp_path / "rotary.nc"
+    rotary.write_bytes(ROTARY_PROGRAM)
+    done = ncfix(str(rotary), "--report", str(report), "-q", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
     data = json.loads(report.read_text())
     assert data["machine"] == "table-ac" and data["settings"]["standoff"] == 4.5
     done = ncfix(str(program), "--report", str(report), "--machine", "ijk", "-q", cwd=tmp_path)
@@ -138,11 +141,11 @@ def test_main_can_be_called_in_process(program, capsysbinary):
 def test_config_beside_the_input_is_used_when_none_is_in_the_working_folder(tmp_path):
     folder = tmp_path / "programs"
     folder.mkdir()
-    (folder / "ncfix.toml").write_text('[ncfix]\nmachine = "table-bc"\n')
-    (folder / "p.nc").write_bytes(PROGRAM)
+    (folder / "ncfix.toml").write_text('[ncfix]\nmachine = "table-ac"\n')
+    (folder / "p.nc").write_bytes(ROTARY_PROGRAM)
     report = tmp_path / "r.json"
     work = tmp_path / "work"
     work.mkdir()
     done = ncfix(str(folder / "p.nc"), "--report", str(report), "-q", cwd=work)
     assert done.returncode == 0, done.stderr
-    assert json.loads(report.read_text())["machine"] == "table-bc"
+    assert json.loads(report.read_text())["machine"] == "table-ac"

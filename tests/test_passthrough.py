@@ -26,6 +26,7 @@ CORPUS_MACHINES = {
     "boat-xyzac.ngc": "linuxcnc-xyzac-trt",
     "impeller-7bl-xyzac.ngc": "linuxcnc-xyzac-trt",
     "boat-xyzbc.ngc": "linuxcnc-xyzbc-trt",
+    "xyzab-tdr-demo.ngc": str(Path(__file__).parent / "profiles" / "linuxcnc-xyzab-tdr.toml"),
 }
 
 
@@ -88,7 +89,7 @@ def test_golden_cases(path):
 
 SAFE_LINES = st.sampled_from([
     "G1 X1 Y2 Z3 I0 J0 K1", "G0 X-1.5 Y.5", "(comment)", "; note", "%", "O1234", "N10 G90 G21", "M3 S1000",
-    "G1 X1 (a) ; b", "/G1 X2", "g1 x 1 0", "TRAORI", "CYCLE800(1,2)", "X=R1", "\tG1\tX1\t", "", "G2 X1 Y1 I1 J0",
+    "G1 X1 (a) ; b", "/G1 X2", "g1 x 1 0", "TRAFOOF", "CYCLE800(1,2)", "X=R1", "\tG1\tX1\t", "", "G2 X1 Y1 I1 J0",
     "G93 G1 X1 F100", "G91 X1", "G90", "G92 E0", "G1 X1 E2.5", "M83", "T1 M6",
 ])
 GARBAGE = st.text(alphabet=st.characters(min_codepoint=0, max_codepoint=255, blacklist_characters="\n\r"), max_size=40)

@@ -24,6 +24,7 @@ import numpy as np
 from ncfix.nc.block import Block, ModalState
 from ncfix.nc.chunk import Chunk
 from ncfix.nc.lexer import WORD_RE, code_of, parse_number
+from ncfix.nc.orientation import BlockWords, foreign_word_error, owned_words, vocabulary
 from ncfix.nc.plain import PlainReader
 from ncfix.nc.plain_jit import PlainReaderJit
 from ncfix.profiles import Profile
@@ -105,6 +106,9 @@ class Interpreter:
         self._fast_ok = profile.dialect == "iso" and all(len(letter) == 1 for letter in kin.letters)
         reader = PlainReaderJit if PlainReaderJit.available else PlainReader
         self._plain = reader(plain_letters) if self._fast_ok else None
+        # Orientation words of other profiles (ncfix.nc.orientation): an error, never ignored. Plain
+        # lines hold only this profile's letters, so only the full reader looks for them.
+        self._foreign = BlockWords(vocabulary() - owned_words(profile))
 
     def _fail(self, lineno: int, message: str, fix: str) -> ProgramError:
         return ProgramError(message, where=f"{self.source}:{lineno}", fix=fix)
@@ -235,6 +239,7 @@ class Interpreter:
         heidenhain_kind = None
         heidenhain_incremental: set[int] = set()
         arc_words: dict[str, str] = {}
+        suspects = self._foreign.suspects(pairs)
         for aname, avalue, addr, value in pairs:
             if aname:
                 addr, value = aname.upper(), avalue
@@ -331,6 +336,11 @@ class Interpreter:
                 self.motion = 2
             elif heidenhain_kind == "CC" or heidenhain_kind is None:
                 non_motion = True
+        if suspects:
+            ms = [number for letter, number in codes if letter == "M"]
+            found = self._foreign.orienting(suspects, None if non_motion else self.motion, gs, ms, heidenhain_kind)
+            if found:
+                raise foreign_word_error(*found[0], self.profile, f"{self.source}:{lineno}")
 
         # -- extrusion ----------------------------------------------------------------------
         if e_text is not None:
