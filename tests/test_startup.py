@@ -160,3 +160,19 @@ def test_auto_runs_the_torch_path_on_a_gpu():
 
     assert gpu_driver_present()
     assert resolve_device("auto") == "cuda"
+
+
+def test_cuda_without_a_device_is_a_usage_error():
+    """``--device cuda`` on a machine where torch sees no GPU (or without torch) fails at once
+    with one line naming the option, before any grid is built."""
+    from ncfix.collision.checker import resolve_device
+    from ncfix.errors import ConfigError
+
+    try:
+        import torch
+    except ImportError:
+        torch = None
+    if torch is not None and torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA device")
+    with pytest.raises(ConfigError, match="--device"):
+        resolve_device("cuda")

@@ -52,6 +52,7 @@ from ncfix.collision.split import thread_count
 from ncfix.collision.grid import DistanceGrid, cached_distance_grid
 from ncfix.collision.head import HeadModel, SphereTree, cached_sphere_tree
 from ncfix.collision.proximity import cached_head_proximity
+from ncfix.errors import ConfigError
 from ncfix.geometry.near import cached_near_surface
 from ncfix.reference import ExactReference
 
@@ -131,7 +132,18 @@ def gpu_driver_present() -> bool:
 
 def resolve_device(name: str) -> str:
     """'auto' → 'cuda' when torch sees a GPU, else 'cpu'. torch is imported only when a GPU
-    driver is present (``gpu_driver_present``) and torch is installed: the CPU path never needs it."""
+    driver is present (``gpu_driver_present``) and torch is installed: the CPU path never needs it.
+    'cuda' without torch or without a device is a ConfigError (before any work)."""
+    if name.startswith("cuda"):
+        try:
+            import torch
+        except ImportError:
+            raise ConfigError("--device cuda needs torch, which is not installed", where="--device",
+                              fix="install torch with CUDA support, or use --device cpu") from None
+        if not torch.cuda.is_available():
+            raise ConfigError("torch sees no CUDA device on this machine", where="--device",
+                              fix="use --device cpu or auto") from None
+        return name
     if name != "auto":
         return name
     if not gpu_driver_present():
