@@ -1,5 +1,6 @@
 """The conservative, windowed collision checker: a sphere tree of the head against lower-bound
-distance fields of the parts and of the beads, in torch; exact tests only where they cannot decide.
+distance fields of the parts and of the beads (compiled loops on the CPU, torch batches on CUDA);
+exact tests only where they cannot decide.
 
 Bodies. Each part is a ``DistanceGrid`` (a lower bound on the distance to the part anywhere in
 space); the beads are the store's rolling ``BeadField`` (a lower bound on the distance to the
@@ -53,6 +54,7 @@ from ncfix.collision.grid import DistanceGrid, cached_distance_grid
 from ncfix.collision.head import HeadModel, SphereTree, cached_sphere_tree
 from ncfix.collision.nested import Nested, mesh_bodies
 from ncfix.collision.proximity import cached_head_proximity
+from ncfix.errors import ConfigError
 from ncfix.geometry.near import cached_near_surface
 from ncfix.reference import ExactReference
 
@@ -109,44 +111,93 @@ def one_thread():
         torch.set_num_threads(n)
 
 
+# Files whose presence means a GPU driver is loaded (Linux): NVIDIA's, WSL's GPU bridge, and AMD's
+# (ROCm builds of torch call their GPUs "cuda" too).
+GPU_DRIVER_PATHS = ("/proc/driver/nvidia", "/dev/nvidiactl", "/dev/dxg", "/dev/kfd")
+
+
+def gpu_driver_present() -> bool:
+    """Whether torch could see a GPU here, decided without importing torch (about 2.5 s): on
+    Linux a loaded GPU driver shows in ``GPU_DRIVER_PATHS``; macOS has no CUDA; elsewhere
+    (Windows) NVIDIA's driver library must be on the search path."""
+    import os
+    import sys
+
+    if sys.platform.startswith("linux"):
+        return any(os.path.exists(path) for path in GPU_DRIVER_PATHS)
+    if sys.platform == "darwin":
+        return False
+    import ctypes.util
+
+    return ctypes.util.find_library("nvcuda") is not None
+
+
 def resolve_device(name: str) -> str:
-    """'auto' → 'cuda' when torch sees a GPU, else 'cpu'."""
-    import torch
+    """'auto' → 'cuda' when torch sees a GPU, else 'cpu'. torch is imported only when a GPU
+    driver is present (``gpu_driver_present``) and torch is installed: the CPU path never needs it.
+    'cuda' without torch or without a device is a ConfigError (before any work)."""
+    if name.startswith("cuda"):
+        try:
+            import torch
+        except ImportError:
+            raise ConfigError("--device cuda needs torch, which is not installed", where="--device",
+                              fix="install torch with CUDA support, or use --device cpu") from None
+        if not torch.cuda.is_available():
+            raise ConfigError("torch sees no CUDA device on this machine", where="--device",
+                              fix="use --device cpu or auto") from None
+        return name
+    if name != "auto":
+        return name
+    if not gpu_driver_present():
+        return "cpu"
+    try:
+        import torch
+    except ImportError:
+        return "cpu"
+    return "cuda" if torch.cuda.is_available() else "cpu"
 
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    return name
 
-
-@dataclass
 class TreeTensors:
-    """A SphereTree on a torch device."""
+    """A SphereTree in numpy (``host``: the compiled CPU descent) and on a torch device (center,
+    radius, reach, child_start, child_count, children (n, 8) int64 padded with -1; made on first
+    use, so that the CPU path never imports torch)."""
 
-    center: object
-    radius: object
-    reach: object
-    child_start: object
-    child_count: object
-    children: object  # (n, 8) int64, child ids padded with -1
-    level_start: np.ndarray
-    host: HostTree  # the same arrays in numpy (the compiled CPU descent)
+    def __init__(self, host: HostTree, device: str):
+        self.host = host
+        self.level_start = host.level_start
+        self.device = device
+        self._tensors: dict | None = None
+
+    def _on_device(self) -> dict:
+        if self._tensors is None:
+            import torch
+
+            h = self.host
+
+            def t(a, dt=torch.float64):
+                return torch.as_tensor(np.ascontiguousarray(a), dtype=dt, device=self.device)
+
+            self._tensors = {"center": t(h.center), "radius": t(h.radius), "reach": t(h.reach),
+                             "child_start": t(h.child_start, torch.int64), "child_count": t(h.child_count, torch.int64),
+                             "children": t(h.children, torch.int64)}
+        return self._tensors
+
+    center = property(lambda self: self._on_device()["center"])
+    radius = property(lambda self: self._on_device()["radius"])
+    reach = property(lambda self: self._on_device()["reach"])
+    child_start = property(lambda self: self._on_device()["child_start"])
+    child_count = property(lambda self: self._on_device()["child_count"])
+    children = property(lambda self: self._on_device()["children"])
 
 
 def tree_tensors(tree: SphereTree, device: str) -> TreeTensors:
-    import torch
-
-    def t(a, dt=torch.float64):
-        return torch.as_tensor(np.ascontiguousarray(a), dtype=dt, device=device)
-
     width = max(1, int(tree.child_count.max()))
     children = np.full((len(tree.radius_mm), width), -1, dtype=np.int64)
     slot = np.arange(width)
     has = slot[None, :] < tree.child_count[:, None]
     children[has] = (tree.child_start[:, None] + slot[None, :])[has]
-    return TreeTensors(t(tree.center_mm), t(tree.radius_mm), t(tree.reach_mm), t(tree.child_start, torch.int64),
-                       t(tree.child_count, torch.int64), t(children, torch.int64), tree.level_start,
-                       HostTree(tree.center_mm, tree.radius_mm, tree.reach_mm, tree.child_start, tree.child_count,
-                                children, tree.level_start))
+    return TreeTensors(HostTree(tree.center_mm, tree.radius_mm, tree.reach_mm, tree.child_start, tree.child_count,
+                                children, tree.level_start), device)
 
 
 @dataclass
@@ -190,10 +241,7 @@ class Checker:
     def __init__(self, head: trimesh.Trimesh, model: HeadModel, parts: list[tuple[str, trimesh.Trimesh, bool]], *,
                  pitch_mm: float, clearance_mm: float = 0.0, bead_radius_mm: float = 1.0,
                  tip_allowance_mm: float = 1.0, device: str = "cpu", part_bounds_mm: np.ndarray | None = None):
-        import torch
-
         self.device = resolve_device(device)
-        self.torch = torch
         # The sphere-tree descent: compiled loops on the CPU (``descent``), torch batches elsewhere.
         self.compiled = self.device == "cpu"
         thread_count()  # a bad $NCFIX_THREADS is an error here, before any work
@@ -234,6 +282,13 @@ class Checker:
                                                  self.bead_radius_mm + self.clearance_mm + 1.5 * self.pitch_mm)
 
     # -- the sphere-tree test ----------------------------------------------------------------
+    @property
+    def torch(self):
+        """The torch module, imported on first use (the torch descent: CUDA, and the tests)."""
+        import torch
+
+        return torch
+
     def _tensor(self, a, dtype=None):
         return self.torch.as_tensor(np.ascontiguousarray(a), dtype=dtype or self.torch.float64, device=self.device)
 

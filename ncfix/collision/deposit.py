@@ -527,10 +527,26 @@ class BeadField:
         return lb
 
     def lower_bound_np(self, points: np.ndarray) -> np.ndarray:
-        """The same bound for numpy points (m, 3) -> (m,) float64 (tests, small queries)."""
-        import torch
-
-        return self.lower_bound(torch.as_tensor(np.asarray(points, dtype=np.float64))).numpy()
+        """The same bound for numpy points (m, 3) -> (m,) float64, in numpy: the same operations
+        in the same order as ``lower_bound`` (tests, small queries; no torch)."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if self.count == 0:
+            return np.full(len(points), np.inf)
+        h = self.pitch_mm
+        idx = np.round(points / h)
+        diff = points - idx * h
+        off = np.sqrt(diff[:, 0] * diff[:, 0] + diff[:, 1] * diff[:, 1] + diff[:, 2] * diff[:, 2])
+        fine = _gather_np(self.fine, self.fine_lo, idx.astype(np.int64), float(FINE_LEVELS))
+        lb = fine * self.step_mm - off
+        k = np.floor((points / h + 0.5) / COARSE_CELLS).astype(np.int64)
+        lb = np.maximum(lb, _gather_np(self.coarse, self.coarse_lo, k, COARSE_REACH_MM))
+        box = self.box
+        gap = np.maximum(np.maximum(box[0] - points, points - box[1]), 0.0)
+        outside = np.sqrt(gap[:, 0] * gap[:, 0] + gap[:, 1] * gap[:, 1] + gap[:, 2] * gap[:, 2]) - self.radius_mm
+        lb = np.maximum(lb, outside)
+        if self.below is not None and self.below.count:
+            lb = np.minimum(lb, self.below.lower_bound_np(points))
+        return lb
 
 
 def _gather(grid, lo, hi, idx, default: float):
@@ -544,6 +560,16 @@ def _gather(grid, lo, hi, idx, default: float):
     flat = (clamped[:, 0] * shape[1] + clamped[:, 1]) * shape[2] + clamped[:, 2]
     values = grid.reshape(-1)[flat].to(torch.float64)
     return torch.where(inside, values, default)
+
+
+def _gather_np(grid: np.ndarray, lo: np.ndarray, idx: np.ndarray, default: float) -> np.ndarray:
+    """``_gather`` in numpy: grid[idx - lo] as float64, ``default`` where idx (m, 3) int64 is outside."""
+    rel = idx - lo
+    inside = ((rel >= 0) & (rel < np.array(grid.shape))).all(axis=1)
+    out = np.full(len(idx), float(default))
+    r = rel[inside]
+    out[inside] = grid[r[:, 0], r[:, 1], r[:, 2]].astype(np.float64)
+    return out
 
 
 def _regrid(grid: np.ndarray, lo: np.ndarray, need_lo: np.ndarray, need_hi: np.ndarray, grow: int, fill):

@@ -1,4 +1,5 @@
-"""Distance grids of meshes at the pitch: a lower bound on the distance to a body, in torch.
+"""Distance grids of meshes at the pitch: a lower bound on the distance to a body (looked up by
+compiled loops on the CPU, ``descent``; in torch on CUDA; the same arithmetic in each).
 
 A grid is built from *marked* cells: cells whose centre is inside the closed mesh (exact, by the
 column-parity voxelizer) plus cells the surface may pass through (centre within half a cell
@@ -111,9 +112,11 @@ class DistanceGrid:
         idx = torch.minimum(torch.maximum(idx, torch.zeros_like(idx)), shape - 1)
         centre = origin + idx.to(torch.float64) * self.pitch_mm
         flat = (idx[:, 0] * shape[1] + idx[:, 1]) * shape[2] + idx[:, 2]
-        off = torch.linalg.vector_norm(points - centre, dim=1)
+        # Sums of squares spelled out: the order of the compiled CPU lookup (``descent._grid_lb``).
+        d = points - centre
+        off = torch.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
         gap = torch.clamp(torch.maximum(box[0] - points, points - box[1]), min=0.0)
-        outside = torch.linalg.vector_norm(gap, dim=1)
+        outside = torch.sqrt(gap[:, 0] * gap[:, 0] + gap[:, 1] * gap[:, 1] + gap[:, 2] * gap[:, 2])
         return torch.maximum(dist[flat].to(torch.float64) - off - self.margin_mm, outside)
 
     def _box(self) -> np.ndarray:
@@ -122,13 +125,16 @@ class DistanceGrid:
         return np.asarray(self.body_bounds_mm, dtype=np.float64)
 
     def lower_bound_np(self, points: np.ndarray) -> np.ndarray:
-        """The same bound in numpy (points (m, 3) float64 mm) -> (m,) float64."""
-        rel = (np.asarray(points, dtype=np.float64) - self.origin_mm) / self.pitch_mm
+        """The same bound in numpy (points (m, 3) float64 mm) -> (m,) float64, in the same order."""
+        points = np.asarray(points, dtype=np.float64)
+        rel = (points - self.origin_mm) / self.pitch_mm
         idx = np.clip(np.round(rel).astype(np.int64), 0, np.array(self.shape) - 1)
         centre = self.origin_mm + idx * self.pitch_mm
-        off = np.linalg.norm(points - centre, axis=1)
+        d = points - centre
+        off = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
         box = self._box()
-        outside = np.linalg.norm(np.maximum(np.maximum(box[0] - points, points - box[1]), 0.0), axis=1)
+        gap = np.maximum(np.maximum(box[0] - points, points - box[1]), 0.0)
+        outside = np.sqrt(gap[:, 0] * gap[:, 0] + gap[:, 1] * gap[:, 1] + gap[:, 2] * gap[:, 2])
         grid = self.dist_mm[idx[:, 0], idx[:, 1], idx[:, 2]].astype(np.float64) - off - self.margin_mm
         return np.maximum(grid, outside)
 

@@ -560,7 +560,7 @@ def _head_corners(checker: Checker) -> np.ndarray | None:
     if tree is None or checker.bead_radius_mm <= 0:
         return None
     start = int(tree.level_start[-2])  # the balls
-    c, r = tree.center.cpu().numpy()[start:], tree.radius.cpu().numpy()[start:]
+    c, r = tree.host.center[start:], tree.host.radius[start:]
     lo, hi = (c - r[:, None]).min(axis=0), (c + r[:, None]).max(axis=0)
     return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
 
