@@ -94,15 +94,16 @@ def _add_part_previews(report: "Report", options: Options) -> None:
     """The HTML's 3-D picture needs the parts: load them here when no stage handed them over."""
     if report.previews or options.head is None:
         return
-    from ncfix.geometry.mesh import load_mesh
+    from ncfix.pipeline import load_parts
+    from ncfix.profiles import load_profile
 
-    for path in options.part:
-        try:
-            loaded = load_mesh(path, "part")
-        except NcfixError as exc:  # the stages read it already; a picture is not worth failing for
-            report.warnings.append(f"no 3-D picture of '{path}': {exc}")
-            continue
-        report.add_part_preview(f"part:{Path(path).name}", loaded.mesh)
+    try:
+        loaded_parts = load_parts(options, load_profile(options.machine))
+    except NcfixError as exc:  # the stages read them already; a picture is not worth failing for
+        report.warnings.append(f"no 3-D picture of the parts: {exc}")
+        return
+    for loaded in loaded_parts:
+        report.add_part_preview(f"part:{Path(loaded.name).name}", loaded.mesh)
 
 
 @contextmanager

@@ -29,11 +29,12 @@ AXIS_MODES = ("continuous", "modulo", "limited")
 
 _TOP_KEYS = {
     "name", "description", "kinematics", "dialect", "tcp", "tcp_on", "tcp_off", "tcp_initial",
-    "extrusion_letter", "vector", "axes", "tcp_off_geometry", "format",
+    "extrusion_letter", "vector", "axes", "tcp_off_geometry", "format", "platform",
 }
 _AXIS_KEYS = {"letter", "direction", "sign", "mode", "limits_deg", "on_head"}
 _VECTOR_KEYS = {"letters", "max_tilt_deg"}
 _GEOMETRY_KEYS = {"centre_first_mm", "offset_mm", "centre_primary_mm", "table_centre_mm", "pivot_length_mm"}
+_PLATFORM_KEYS = {"translate", "rotate_deg", "mesh"}
 _FORMAT_KEYS = {"linear", "angle", "vector", "force_decimal_point", "force_sign"}
 
 
@@ -62,6 +63,10 @@ class Profile:
     tcp_initial: bool
     extrusion_letter: str
     number_format: NumberFormat = field(default_factory=NumberFormat)
+    # [platform]: where the machine's build platform mesh (--platform FILE) goes in the part frame:
+    # (translate (3,) mm, rotate_deg (3,) as ncfix.geometry.place), and the mesh it is meant for.
+    platform: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    platform_mesh: str = ""
 
     @property
     def is_vector(self) -> bool:
@@ -126,6 +131,14 @@ def build_profile(data: dict[str, Any], where: str) -> Profile:
     )
     geometry = r.table("tcp_off_geometry")
     r.known_keys(geometry, _GEOMETRY_KEYS, "tcp_off_geometry.")
+    platform_data = r.table("platform")
+    r.known_keys(platform_data, _PLATFORM_KEYS, "platform.")
+    platform = None
+    if platform_data:
+        platform = (r.vec3(platform_data, "platform.translate"), r.vec3(platform_data, "platform.rotate_deg"))
+    platform_mesh = platform_data.get("mesh", "")
+    if not isinstance(platform_mesh, str):
+        raise r.fail("platform.mesh", platform_mesh, 'name the mesh file it is meant for, e.g. mesh = "platform.stl"')
 
     if kin_name == "tool_vector":
         vec = r.table("vector")
@@ -166,6 +179,8 @@ def build_profile(data: dict[str, Any], where: str) -> Profile:
         tcp_initial=r.boolean(data, "tcp_initial", False),
         extrusion_letter=r.string("extrusion_letter", default="E").upper(),
         number_format=number_format,
+        platform=platform,
+        platform_mesh=platform_mesh,
     )
 
 
