@@ -26,8 +26,8 @@ def process(src: Source, dst: Source, *, config: str | os.PathLike[str] | None =
 
     ``src``, ``dst``: a path (``dst`` is written atomically: nothing exists there after an error)
     or an open binary stream. ``options``: the names of :class:`ncfix.config.Options`, i.e. the
-    command line's long options with ``_`` for ``-`` (``head="head.stl"``, ``part=["mold.stl"]``,
-    ``standoff=6.0``, ``deposit_codes="M3,M5"``, ``check=True``, ``report="r.json"``, ``diff=``,
+    command line's long options with ``_`` for ``-`` (``head="head.stl"``,
+    ``part=["mold.stl@translate=0,0,-5"]``, ``platform=``, ``standoff=6.0``, ``deposit_codes="M3,M5"``, ``check=True``, ``report="r.json"``, ``diff=``,
     ``html=``); checked as the command line checks them, with the same messages. ``config``: a
     TOML file read as ``-c`` reads it (keywords win); no config file is read without it.
     ``progress(bytes_done, lines_done)`` is called after each chunk of 4,096 lines.

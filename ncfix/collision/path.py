@@ -263,7 +263,7 @@ class PathChecker:
             counts = np.where(axial, 1, counts)
         brow = np.repeat(di, counts)
         bw = self._along(moves, ws, moves.w_end, brow, tb, arcs)
-        drop = self.checker.bead_drop_mm
+        drop = float(getattr(self.checker, "bead_drop_mm", 0.0))  # a checker without it lays beads on P
         if isinstance(self.kin, ToolVector):  # P is the XYZ words: no rotations to compute
             pend = bw[:, :3].copy()
             if drop:
