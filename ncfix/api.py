@@ -26,8 +26,8 @@ def process(src: Source, dst: Source, *, config: str | os.PathLike[str] | None =
 
     ``src``, ``dst``: a path (``dst`` is written atomically: nothing exists there after an error)
     or an open binary stream. ``options``: the names of :class:`ncfix.config.Options`, i.e. the
-    command line's long options with ``_`` for ``-`` (``head="head.stl"``, ``part=["mold.stl"]``,
-    ``standoff=6.0``, ``deposit_codes="M3,M5"``, ``check=True``, ``report="r.json"``, ``diff=``,
+    command line's long options with ``_`` for ``-`` (``head="head.stl"``,
+    ``part=["mold.stl@translate=0,0,-5"]``, ``platform=``, ``standoff=6.0``, ``deposit_codes="M3,M5"``, ``check=True``, ``report="r.json"``, ``diff=``,
     ``html=``); checked as the command line checks them, with the same messages. ``config``: a
     TOML file read as ``-c`` reads it (keywords win); no config file is read without it.
     ``progress(bytes_done, lines_done)`` is called after each chunk of 4,096 lines.
@@ -94,15 +94,16 @@ def _add_part_previews(report: "Report", options: Options) -> None:
     """The HTML's 3-D picture needs the parts: load them here when no stage handed them over."""
     if report.previews or options.head is None:
         return
-    from ncfix.geometry.mesh import load_mesh
+    from ncfix.pipeline import load_parts
+    from ncfix.profiles import load_profile
 
-    for path in options.part:
-        try:
-            loaded = load_mesh(path, "part")
-        except NcfixError as exc:  # the stages read it already; a picture is not worth failing for
-            report.warnings.append(f"no 3-D picture of '{path}': {exc}")
-            continue
-        report.add_part_preview(f"part:{Path(path).name}", loaded.mesh)
+    try:
+        loaded_parts = load_parts(options, load_profile(options.machine))
+    except NcfixError as exc:  # the stages read them already; a picture is not worth failing for
+        report.warnings.append(f"no 3-D picture of the parts: {exc}")
+        return
+    for loaded in loaded_parts:
+        report.add_part_preview(f"part:{Path(loaded.name).name}", loaded.mesh)
 
 
 @contextmanager

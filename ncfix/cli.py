@@ -35,10 +35,13 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("-c", "--config", metavar="PATH", help="TOML config (default ./ncfix.toml when it exists)")
     p.add_argument("--machine", metavar="NAME|PATH", help="machine profile: built-in name, profile file, or 'auto' (chosen from the program's "
                    "orientation words) (default ijk)")
-    p.add_argument("--head", metavar="PATH", help="deposition-head mesh (STL or OBJ)")
+    p.add_argument("--head", metavar="PATH", help="deposition-head mesh (STL or OBJ); PATH@translate=X,Y,Z@rotate_deg=RX,RY,RZ places it")
     p.add_argument("--head-tip", metavar="X,Y,Z", help="nozzle tip in the head mesh (default 0,0,0)")
     p.add_argument("--head-axis", metavar="X,Y,Z", help="head axis, tip → head, in the mesh (default 0,0,1)")
-    p.add_argument("--part", action="append", metavar="PATH", help="mold/part/fixture mesh in workpiece coordinates; repeatable")
+    p.add_argument("--part", action="append", metavar="PATH",
+                   help="mold/part/fixture mesh in workpiece coordinates; repeatable; "
+                   "PATH@translate=X,Y,Z@rotate_deg=RX,RY,RZ places it (turned about X, Y, Z in turn, then moved)")
+    p.add_argument("--platform", metavar="PATH", help="the machine's build platform mesh, placed as the --machine profile says")
     p.add_argument("--standoff", metavar="MM", help="h: distance from the path point to the nozzle tip along the tool axis (default 6)")
     p.add_argument("--pivot", choices=PIVOTS, help="rotate about the tip C (default) or about the path point P")
     p.add_argument("--max-step", metavar="DEG", help="largest orientation change ncfix introduces between blocks (default 2)")
@@ -48,6 +51,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--strategy", choices=STRATEGIES, help="correction strategy (default epa)")
     p.add_argument("--resolution", metavar="DEG", help="spacing of the orientations the corrector tries (default 1)")
     p.add_argument("--bead-radius", metavar="MM", help="radius of deposited material; 0 turns the deposit model off (default 1)")
+    p.add_argument("--bead-width", metavar="MM", help="a flat bead's width across the tool axis (with --bead-height; overrides the radius)")
+    p.add_argument("--bead-height", metavar="MM", help="a flat bead's height along the tool axis, hanging below the nozzle tip")
     p.add_argument("--tip-allowance", metavar="MM", help="bottom of the head not checked against deposit (default 1)")
     p.add_argument("--deposit-codes", metavar="ON,OFF", help="M-codes that switch deposition on and off, e.g. M3,M5")
     p.add_argument("--window", metavar="BLOCKS", help="motion blocks per checking window (default 2000)")

@@ -25,6 +25,7 @@ class Options:
     head_tip: tuple[float, float, float] = (0.0, 0.0, 0.0)
     head_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
     part: tuple[str, ...] = ()
+    platform: str | None = None
     standoff: float = 6.0
     pivot: str = "tip"
     max_step: float = 2.0
@@ -34,6 +35,8 @@ class Options:
     strategy: str = "epa"
     resolution: float = 1.0
     bead_radius: float = 1.0
+    bead_width: float | None = None
+    bead_height: float | None = None
     tip_allowance: float = 1.0
     deposit_codes: tuple[str, str] | None = None
     check: bool = False
@@ -74,15 +77,51 @@ def load_config(path: Path, explicit: bool) -> dict[str, Any]:
             close = difflib.get_close_matches(key, OPTION_NAMES, n=1)
             hint = f"did you mean '{close[0]}'?" if close else "see ncfix --help for the options"
             raise ConfigError(f"unknown key '{key}' in [ncfix]", where=str(path), fix=hint)
+    for key in data:
+        if key != "ncfix" and key in OPTION_NAMES:
+            form = f"[[ncfix.{key}]]" if key == "part" else f"[ncfix.{key}]"
+            raise ConfigError(f"'{key}' is outside the [ncfix] table", where=str(path),
+                              fix=f"write it as {form} or as a key under [ncfix]")
     base = path.parent
-    for key in ("head", "report", "diff", "html"):  # paths in a config are relative to it
+    for key in ("report", "diff", "html"):  # paths in a config are relative to it
         if isinstance(table.get(key), str):
             table[key] = str(base / table[key])
-    if isinstance(table.get("part"), list):
-        table["part"] = [str(base / p) if isinstance(p, str) else p for p in table["part"]]
-    if isinstance(table.get("machine"), str) and table["machine"].endswith(".toml"):
-        table["machine"] = str(base / table["machine"])
+    for key in ("head", "platform"):
+        if key in table:
+            table[key] = _mesh_entry(table[key], key, base, path)
+    if isinstance(table.get("part"), (list, dict)):
+        entries = table["part"] if isinstance(table["part"], list) else [table["part"]]
+        table["part"] = [_mesh_entry(p, "part", base, path) for p in entries]
+    elif isinstance(table.get("part"), str):
+        table["part"] = [_mesh_entry(table["part"], "part", base, path)]
     return dict(table)
+
+
+def _mesh_entry(entry: Any, key: str, base: Path, config: Path) -> Any:
+    """A mesh entry of the config as the text form ``PATH@translate=..@rotate_deg=..`` (see
+    ``ncfix.geometry.place``), its path relative to the config file: a string, or a table
+    ``{path = ..., translate = [x, y, z], rotate_deg = [rx, ry, rz]}``."""
+    from ncfix.geometry.place import KEYS, Placement, vector
+
+    if isinstance(entry, str):
+        return str(base / entry) if entry else entry
+    if not isinstance(entry, dict):
+        return entry  # _convert says what is wrong with it
+    for name in entry:
+        if name != "path" and name not in KEYS:
+            raise ConfigError(f"unknown key '{name}' in a '{key}' table", where=str(config),
+                              fix="use path, translate = [x, y, z] and rotate_deg = [rx, ry, rz]")
+    if not isinstance(entry.get("path"), str) or not entry["path"]:
+        raise ConfigError(f"a '{key}' table needs path = \"FILE\"", where=str(config), fix="give the mesh file's path")
+    values = {}
+    for name in KEYS:
+        if name in entry:
+            vec, bad = vector(entry[name])
+            if bad:
+                raise ConfigError(f"'{name}' of '{key}' {entry['path']!r} has a bad value {entry[name]!r}",
+                                  where=str(config), fix="give three numbers, e.g. [0, 0, -40.5]")
+            values[name] = vec
+    return Placement(str(base / entry["path"]), **values).text()
 
 
 def build_options(config: dict[str, Any], cli: dict[str, Any], where: str = "ncfix.toml") -> Options:
@@ -96,7 +135,37 @@ def build_options(config: dict[str, Any], cli: dict[str, Any], where: str = "ncf
     converted = {}
     for key, (source, value) in merged.items():
         converted[key] = _convert(key, value, source, where)
+    _check_bead(merged, converted, where)
     return replace(out, **converted)
+
+
+def _check_placement(text: str, name: str, source: str, config_path: str) -> None:
+    from ncfix.geometry.place import parse
+
+    _, problem = parse(text)
+    if problem:
+        raise ConfigError(f"{name} {text!r}: {problem}", where=config_path if source == "config" else None,
+                          fix="write PATH@translate=X,Y,Z@rotate_deg=RX,RY,RZ (either part may be left out)")
+
+
+def _check_bead(merged: dict[str, Any], converted: dict[str, Any], where: str) -> None:
+    """A bead section is a width and a height together; --bead-radius 0 (no deposit model) with one
+    is a contradiction, not a choice to guess."""
+    given = [k for k in ("bead_width", "bead_height") if k in converted]
+
+    def place(key: str) -> tuple[str, str | None]:
+        source = merged[key][0]
+        return ("--" + key.replace("_", "-"), None) if source == "command line" else (f"key '{key}'", where)
+
+    if len(given) == 1:
+        missing = "bead_height" if given[0] == "bead_width" else "bead_width"
+        name, at = place(given[0])
+        raise ConfigError(f"{name} needs {'--' + missing.replace('_', '-')} too (a bead's section is width × height)",
+                          where=at, fix="give both, or --bead-radius R for a round bead")
+    if given and converted.get("bead_radius", 1.0) == 0.0:
+        name, at = place("bead_radius")
+        raise ConfigError(f"{name} is 0 (no deposit model) but a bead width and height are stated", where=at,
+                          fix="drop the bead width and height to turn the deposit model off, or the radius of 0")
 
 
 def _convert(key: str, value: Any, source: str, config_path: str) -> Any:
@@ -124,6 +193,14 @@ def _convert(key: str, value: Any, source: str, config_path: str) -> Any:
         if number > hi or number < lo or (number == lo and not lo_ok):
             low = f"from {lo:g}" if lo_ok else f"above {lo:g}"
             raise bad(f"give a number {low} up to {hi:g}")
+        return number
+    if key in ("bead_width", "bead_height"):
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            raise bad("give a number above 0 up to 100") from None
+        if isinstance(value, bool) or not math.isfinite(number) or not 0.0 < number <= 100.0:
+            raise bad("give a number above 0 up to 100")
         return number
     if key == "window":
         if isinstance(value, bool):
@@ -156,6 +233,8 @@ def _convert(key: str, value: Any, source: str, config_path: str) -> Any:
         parts = value if isinstance(value, (list, tuple)) else [value]
         if not all(isinstance(p, str) and p for p in parts):
             raise bad("give mesh file paths")
+        for p in parts:
+            _check_placement(p, name, source, config_path)
         return tuple(parts)
     choices = {"strategy": STRATEGIES, "device": DEVICES, "pivot": PIVOTS}
     if key in choices:
@@ -166,8 +245,10 @@ def _convert(key: str, value: Any, source: str, config_path: str) -> Any:
         if not isinstance(value, bool):
             raise bad("use true or false")
         return value
-    if key in ("machine", "head", "report", "diff", "html"):
+    if key in ("machine", "head", "platform", "report", "diff", "html"):
         if not isinstance(value, str) or not value:
             raise bad("give a name or a path")
+        if key in ("head", "platform"):
+            _check_placement(value, name, source, config_path)
         return value
     raise ConfigError(f"unknown option {name}")

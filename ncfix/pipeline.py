@@ -79,6 +79,19 @@ def program_box(stream: BinaryIO, profile: Profile, options: Options, source: st
     return np.array([lo, hi]) if np.isfinite(lo).all() else None
 
 
+def load_parts(options: Options, profile: Profile) -> list:
+    """The --part meshes, placed, then the --platform mesh placed by the profile's [platform]
+    (``ncfix.geometry.place``; a profile without one leaves it where its file has it)."""
+    from ncfix.geometry.mesh import load_mesh
+    from ncfix.geometry.place import transform
+
+    out = [load_mesh(path, "part") for path in options.part]
+    if options.platform is not None:
+        base = transform(*profile.platform) if profile.platform is not None else None
+        out.append(load_mesh(options.platform, "platform", base=base))
+    return out
+
+
 def build_stages(options: Options, profile: Profile, report: Report, box=None) -> list[Stage]:
     """The window stages for these options: none without --head, else the collision checker.
     ``box``: where the program's points and tips are (``program_box``), to crop the part grids
@@ -88,17 +101,17 @@ def build_stages(options: Options, profile: Profile, report: Report, box=None) -
     from pathlib import Path
 
     from ncfix.collision.checker import Checker
+    from ncfix.collision.deposit import BeadShape
     from ncfix.collision.stage import CheckStage
     from ncfix.collision.head import cached_head_model
-    from ncfix.geometry.mesh import load_head, load_mesh
+    from ncfix.geometry.mesh import load_head
 
     head = load_head(options.head, options.head_tip, options.head_axis)
     report.warnings.extend(head.warnings)
     parts, loaded_parts = [], []
-    for path in options.part:
-        loaded = load_mesh(path, "part")
+    for loaded in load_parts(options, profile):
         report.warnings.extend(loaded.warnings)
-        parts.append((f"part:{Path(path).name}", loaded.mesh, loaded.closed))
+        parts.append((f"part:{Path(loaded.name).name}", loaded.mesh, loaded.closed))
         loaded_parts.append(loaded)
     model = cached_head_model(head.mesh, options.pitch)
     report.details.append(model.summary())
@@ -108,9 +121,10 @@ def build_stages(options: Options, profile: Profile, report: Report, box=None) -
         rho = float(np.linalg.norm(head.mesh.vertices, axis=1).max())
         reach = rho + options.standoff + options.clearance + 2 * options.pitch
         reach_box = np.array([box[0] - reach, box[1] + reach])
+    bead = BeadShape.stated(options.bead_radius, options.bead_width, options.bead_height, options.standoff)
     checker = Checker(head.mesh, model, parts, pitch_mm=options.pitch, clearance_mm=options.clearance,
-                      bead_radius_mm=options.bead_radius, tip_allowance_mm=options.tip_allowance,
-                      device=options.device, part_bounds_mm=reach_box)
+                      bead_radius_mm=bead.radius_mm, tip_allowance_mm=options.tip_allowance,
+                      device=options.device, part_bounds_mm=reach_box, bead_drop_mm=bead.drop_mm)
     if options.check:
         return [CheckStage(checker, profile, options, report, placed_parts=loaded_parts)]
     from ncfix.correct.solve import make_strategy
@@ -139,7 +153,7 @@ def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>",
     if note is not None:
         report.notes.append(note)
     interpreter = Interpreter(profile, source, options.deposit_codes)
-    box = program_box(src, profile, options, source) if options.head is not None and options.part else None
+    box = program_box(src, profile, options, source) if options.head is not None and (options.part or options.platform) else None
     stages = build_stages(options, profile, report, box)
     writer = Writer(profile)
     bytes_done = lines_done = 0

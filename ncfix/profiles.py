@@ -29,7 +29,7 @@ AXIS_MODES = ("continuous", "modulo", "limited")
 
 _TOP_KEYS = {
     "name", "description", "kinematics", "dialect", "tcp", "tcp_on", "tcp_off", "tcp_initial",
-    "extrusion_letter", "vector", "axes", "tcp_off_geometry", "format",
+    "extrusion_letter", "vector", "axes", "tcp_off_geometry", "format", "platform",
 }
 _AXIS_KEYS = {"letter", "direction", "sign", "mode", "limits_deg", "on_head"}
 _VECTOR_KEYS = {"letters", "max_tilt_deg"}
@@ -40,6 +40,7 @@ _GEOMETRY_KEYS = {
     "head_table": {"table_centre_mm", "pivot_length_mm", "part_origin_mm"},
     "tool_vector": set(),
 }
+_PLATFORM_KEYS = {"translate", "rotate_deg", "mesh"}
 _FORMAT_KEYS = {"linear", "angle", "vector", "force_decimal_point", "force_sign"}
 
 
@@ -68,6 +69,10 @@ class Profile:
     tcp_initial: bool
     extrusion_letter: str
     number_format: NumberFormat = field(default_factory=NumberFormat)
+    # [platform]: where the machine's build platform mesh (--platform FILE) goes in the part frame:
+    # (translate (3,) mm, rotate_deg (3,) as ncfix.geometry.place), and the mesh it is meant for.
+    platform: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    platform_mesh: str = ""
 
     @property
     def is_vector(self) -> bool:
@@ -138,6 +143,14 @@ def build_profile(data: dict[str, Any], where: str) -> Profile:
             raise ProfileError(f"key 'tcp_off_geometry.{key}' belongs to kinematics '{owner}', not '{kin_name}'",
                                where=where, fix=f"{kin_name} takes: {known}")
     r.known_keys(geometry, _GEOMETRY_KEYS[kin_name], "tcp_off_geometry.")
+    platform_data = r.table("platform")
+    r.known_keys(platform_data, _PLATFORM_KEYS, "platform.")
+    platform = None
+    if platform_data:
+        platform = (r.vec3(platform_data, "platform.translate"), r.vec3(platform_data, "platform.rotate_deg"))
+    platform_mesh = platform_data.get("mesh", "")
+    if not isinstance(platform_mesh, str):
+        raise r.fail("platform.mesh", platform_mesh, 'name the mesh file it is meant for, e.g. mesh = "platform.stl"')
 
     if kin_name == "tool_vector":
         vec = r.table("vector")
@@ -179,6 +192,8 @@ def build_profile(data: dict[str, Any], where: str) -> Profile:
         tcp_initial=r.boolean(data, "tcp_initial", False),
         extrusion_letter=r.string("extrusion_letter", default="E").upper(),
         number_format=number_format,
+        platform=platform,
+        platform_mesh=platform_mesh,
     )
 
 

@@ -326,6 +326,7 @@ def label_program(
     tip_allowance_mm: float = 1.0,
     bead_spacing_mm: float = 0.25,
     deposit_codes: tuple[str, str] | None = None,
+    bead_drop_mm: float = 0.0,
 ) -> list[tuple[int, list[str]]]:
     """The exact answer for a program: (line, bodies) of every motion block whose pose collides.
 
@@ -333,8 +334,10 @@ def label_program(
     the CONTRACT rule (E words: E grows; else between the deposit codes; else every feed move); each
     pose is checked against
     the beads laid before it, including the move that ends at it, as spheres ``bead_spacing_mm``
-    apart along the path through P.
+    apart along the path through P, each ``bead_drop_mm`` below it along the tool axis; a move
+    along the axis (``deposit.axial_moves``) lays one, at its lower end.
     """
+    from ncfix.collision.deposit import axial_moves
     from ncfix.nc.modal import Interpreter
     from ncfix.profiles import load_profile
 
@@ -369,7 +372,16 @@ def label_program(
         else:
             deposits = feed
         if deposits and previous is not None and bead_radius_mm > 0:
-            beads = np.vstack([beads, bead_centres(previous, p[row], bead_spacing_mm)])
+            n0, n1 = n[row - 1], n[row]
+            if axial_moves(previous[None], p[row][None], n0[None], n1[None])[0]:
+                low = row if float((p[row] - previous) @ (n0 + n1)) < 0 else row - 1
+                laid = (p[low] - bead_drop_mm * n[low])[None]
+            else:
+                laid = bead_centres(previous, p[row], bead_spacing_mm)
+                t = np.linspace(0.0, 1.0, len(laid))[:, None]
+                axis = n0 + t * (n1 - n0)
+                laid = laid - bead_drop_mm * axis / np.linalg.norm(axis, axis=1, keepdims=True)
+            beads = np.vstack([beads, laid])
         previous = p[row]
         tip = p[row] + standoff_mm * n[row]
         bodies = [f"part:{name}" for name, value in ref.part_clearances(tip, r[row]).items() if value < 0]

@@ -240,14 +240,16 @@ class Checker:
 
     def __init__(self, head: trimesh.Trimesh, model: HeadModel, parts: list[tuple[str, trimesh.Trimesh, bool]], *,
                  pitch_mm: float, clearance_mm: float = 0.0, bead_radius_mm: float = 1.0,
-                 tip_allowance_mm: float = 1.0, device: str = "cpu", part_bounds_mm: np.ndarray | None = None):
+                 tip_allowance_mm: float = 1.0, device: str = "cpu", part_bounds_mm: np.ndarray | None = None,
+                 bead_drop_mm: float = 0.0):
         self.device = resolve_device(device)
         # The sphere-tree descent: compiled loops on the CPU (``descent``), torch batches elsewhere.
         self.compiled = self.device == "cpu"
         thread_count()  # a bad $NCFIX_THREADS is an error here, before any work
         self.pitch_mm = float(pitch_mm)
         self.clearance_mm = float(clearance_mm)
-        self.bead_radius_mm = float(bead_radius_mm)
+        self.bead_radius_mm = float(bead_radius_mm)  # the sphere each bead is held as (deposit.BeadShape)
+        self.bead_drop_mm = float(bead_drop_mm)  # bead centres lie this far below P along the tool axis
         self.tip_allowance_mm = float(tip_allowance_mm)
         self.model = model
         self.head = head

@@ -7,8 +7,12 @@ otherwise, with ``--deposit-codes``, between ON and OFF; otherwise every feed mo
 chunk the checker sees): if any extrusion word appears there, the E rule holds for the whole
 program; a program whose first E word comes later is read with the other rules.
 
-Beads are spheres of the bead radius centred on the deposited path through P, sampled at most
-half a pitch apart (each depositing move from its start to its end point, both included).
+Beads are laid along the deposited path, sampled at most half a pitch apart (each depositing move
+from its start to its end point, both included), as the nozzle lays them (``BeadShape``): below
+the tip along the tool axis. A move within AXIAL_DEG of the tool axis (a plunge or a lift that
+extrudes) lays its material at its lower end only: what leaves the nozzle while it runs along its
+own axis ends under it, not in a column along the move. The checker holds each bead as a sphere
+(``BeadShape.radius_mm``) that contains the stated bead.
 
 ``BeadStore`` keeps them twice:
 
@@ -24,6 +28,7 @@ half a pitch apart (each depositing move from its start to its end point, both i
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
@@ -37,6 +42,62 @@ EXACT_BEADS_MAX = 1 << 18
 # The retired beads' field is this many times coarser than the pitch (it only has to clear poses
 # away from them: near them a pose counts as colliding anyway).
 OLD_FIELD_COARSENING = 2
+
+
+# A depositing move whose direction lies within this angle (degrees) of the tool axis at both its
+# ends is a plunge or a lift: its material is laid at its lower end only. Plunges and lifts are
+# programmed along the axis (0°); a printing move is far from it (a layer's path runs across the
+# axis). 10° leaves room for rounding of the words of short moves.
+AXIAL_DEG = 10.0
+
+
+@dataclass(frozen=True)
+class BeadShape:
+    """The deposited bead as stated (``--bead-width``/``--bead-height`` or ``--bead-radius``) and
+    how the checker holds it.
+
+    The stated bead, at each bead sample, is a round-edged disc across the tool axis N: ``width_mm``
+    across, ``height_mm`` along N (the set of points within height/2 of a disc of radius
+    (width − height)/2 about the centre, at right angles to N; for width = height a ball: the round
+    bead of radius width/2). Cut across the path it is the usual bead section, a rectangle with
+    round ends ("obround"), width × height. Its centre lies ``drop_mm`` below the path point P along
+    N: with --standoff 0 (filament: the nozzle tip on the path) the bead's top is at the tip,
+    drop = height/2; with a standoff (h > 0) P is where the process puts the bead, its centre, drop
+    = 0.
+
+    The checker holds it as one sphere of ``radius_mm`` = max(width, height)/2 about that centre,
+    which contains it: a point of the disc is at most (width − height)/2 from the centre, plus
+    height/2 (``tests/test_deposit_rule.py`` checks it against the exact section).
+    """
+
+    width_mm: float
+    height_mm: float
+    drop_mm: float = 0.0
+
+    @property
+    def radius_mm(self) -> float:
+        return 0.5 * max(self.width_mm, self.height_mm)
+
+    @classmethod
+    def stated(cls, bead_radius_mm: float, width_mm: float | None, height_mm: float | None,
+               standoff_mm: float) -> "BeadShape":
+        """The bead of the options: width × height when stated, else round of the radius (0: off)."""
+        if width_mm is None or height_mm is None:
+            width_mm = height_mm = 2.0 * float(bead_radius_mm)
+        drop = 0.5 * float(height_mm) if float(standoff_mm) == 0.0 else 0.0
+        return cls(float(width_mm), float(height_mm), drop)
+
+
+def axial_moves(start_mm: np.ndarray, end_mm: np.ndarray, n_start: np.ndarray, n_end: np.ndarray) -> np.ndarray:
+    """(n,) bool: moves (start, end (n, 3) P, workpiece mm) that run along the tool axis (unit
+    vectors n_start, n_end (n, 3)) within AXIAL_DEG at both ends: plunges and lifts."""
+    d = np.asarray(end_mm, dtype=np.float64) - np.asarray(start_mm, dtype=np.float64)
+    length = np.linalg.norm(d, axis=1)
+    cos_min = np.cos(np.radians(AXIAL_DEG))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c0 = np.abs(np.einsum("ij,ij->i", d, n_start)) / length
+        c1 = np.abs(np.einsum("ij,ij->i", d, n_end)) / length
+    return (length > 0) & (c0 >= cos_min) & (c1 >= cos_min)
 
 
 class DepositRule(Enum):

@@ -17,8 +17,10 @@ sample's linear margin is |ΔP| + h·|ΔN| (no point of an arc of less than half
 from its end than its chord).
 
 Beads of depositing moves are laid from the move's start to its end point (along the arc for
-arcs), at most half a pitch apart; a bead exists from the first sample at or after its place on
-the move (sequence numbers).
+arcs), at most half a pitch apart, each ``Checker.bead_drop_mm`` below P along the tool axis
+there (``deposit.BeadShape``); a plunge or lift (``deposit.axial_moves``) lays one bead, at its
+lower end. A bead exists from the first sample at or after its place on the move (sequence
+numbers).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ncfix.collision.checker import Checker, rotation_angle
-from ncfix.collision.deposit import BeadStore, bead_samples
+from ncfix.collision.deposit import BeadStore, axial_moves, bead_samples
 from ncfix.kinematics.tool_vector import ToolVector
 
 # A sample hit with its sweep margin is checked again as this many finer samples (REFINE_LEVELS deep).
@@ -172,7 +174,7 @@ class PathChecker:
             chain_ang[1:] = rotation_angle(R[:-1], R[1:])
         cum_lin, cum_ang = np.cumsum(chain_lin), np.cumsum(chain_ang)
 
-        pend, pend_seq = self._beads(moves, ws, Ps, Pe, m, first, seq0)
+        pend, pend_seq = self._beads(moves, ws, Ps, Pe, Ns, Ne, m, first, seq0)
         if prior is not None and len(prior) and ck.bead_radius_mm > 0:
             # Laid before sample seq0: seen by every sample, never fresh; first in laying order.
             pend = np.concatenate([np.asarray(prior, dtype=np.float64).reshape(-1, 3), pend])
@@ -232,13 +234,14 @@ class PathChecker:
     def bead_points(self, moves: Moves) -> np.ndarray:
         """The beads the moves lay (m, 3), as ``check`` lays them (for committing without a check)."""
         ws = np.where(moves.known_start[:, None], moves.w_start, moves.w_end)
-        Ps, _, _ = self.forward(ws, moves.tcp)
-        Pe, _, _ = self.forward(moves.w_end, moves.tcp)
+        Ps, Ns, _ = self.forward(ws, moves.tcp)
+        Pe, Ne, _ = self.forward(moves.w_end, moves.tcp)
         ones = np.ones(len(moves), dtype=np.int64)
-        return self._beads(moves, ws, Ps, Pe, ones, np.zeros(len(moves), dtype=np.int64), 0)[0]
+        return self._beads(moves, ws, Ps, Pe, Ns, Ne, ones, np.zeros(len(moves), dtype=np.int64), 0)[0]
 
-    def _beads(self, moves: Moves, ws, Ps, Pe, m, first, seq0):
-        """Beads of the depositing moves, from start to end point, <= pitch/2 apart, with the
+    def _beads(self, moves: Moves, ws, Ps, Pe, Ns, Ne, m, first, seq0):
+        """Beads of the depositing moves, from start to end point, <= pitch/2 apart (a plunge or
+        lift: one, at its lower end), each ``bead_drop_mm`` below P along the tool axis, with the
         sequence number of the first sample that sees each."""
         depo = moves.deposit
         if not depo.any() or self.checker.bead_radius_mm <= 0:
@@ -250,12 +253,26 @@ class PathChecker:
             sel = di[arcs[di]]
             length[arcs[di]] = arc_extent(ws[sel][:, self.xyz], moves.w_end[sel][:, self.xyz], moves.arc[sel])[1]
         counts, tb = bead_samples(Ps[di], Pe[di], 0.5 * self.pitch_mm, length_mm=length)
+        axial = axial_moves(Ps[di], Pe[di], Ns[di], Ne[di]) & ~arcs[di]
+        if axial.any():
+            # The lower end along the axis: the end point of a plunge (P·N falls), else the start.
+            lower = np.where(np.einsum("ij,ij->i", Pe[di] - Ps[di], Ns[di] + Ne[di]) < 0, 1.0, 0.0)
+            own = np.repeat(np.arange(len(di)), counts)
+            keep = ~axial[own] | (tb == lower[own])  # t is exactly 0.0 and 1.0 at the ends
+            tb = tb[keep]
+            counts = np.where(axial, 1, counts)
         brow = np.repeat(di, counts)
         bw = self._along(moves, ws, moves.w_end, brow, tb, arcs)
+        drop = float(getattr(self.checker, "bead_drop_mm", 0.0))  # a checker without it lays beads on P
         if isinstance(self.kin, ToolVector):  # P is the XYZ words: no rotations to compute
             pend = bw[:, :3].copy()
+            if drop:
+                v = bw[:, 3:6]
+                pend -= drop * v / np.linalg.norm(v, axis=1, keepdims=True)
         else:
-            pend, _, _ = self.forward(self.normalise(bw), moves.tcp[brow])
+            pend, nb, _ = self.forward(self.normalise(bw), moves.tcp[brow])
+            if drop:
+                pend -= drop * nb
         kb = np.maximum(np.ceil(tb * m[brow] - 1e-9), 1).astype(np.int64)
         return pend, seq0 + first[brow] + kb - 1
 

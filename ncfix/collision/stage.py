@@ -74,8 +74,10 @@ class MotionRows:
 
 def check_placement(path: PathChecker, motion: MotionRows, placed_parts: list, chunk, rows, report) -> list:
     """Check each part's placement against the toolpath box of the first chunk that moves (wrong
-    frame or units): a streaming filter does not know the whole program's box. Returns the parts
-    still to check (none once a chunk moved)."""
+    frame or units): a streaming filter does not know the whole program's box. The box is grown
+    by where the material lies (the beads reach ``bead_drop_mm + bead_radius_mm`` from P) and a
+    pitch, the checker's resolution: a platform that the first layer is printed on touches it.
+    Returns the parts still to check (none once a chunk moved)."""
     from ncfix.geometry.mesh import check_part_overlaps
 
     if not placed_parts or not len(rows):
@@ -84,8 +86,10 @@ def check_placement(path: PathChecker, motion: MotionRows, placed_parts: list, c
     P = P[np.isfinite(P).all(axis=1)]
     if len(P) == 0:
         return placed_parts
+    ck = path.checker
+    grow = ck.pitch_mm + (ck.bead_drop_mm + ck.bead_radius_mm if ck.bead_radius_mm > 0 else 0.0)
     for part in placed_parts:
-        report.warnings.extend(check_part_overlaps(part, P.min(axis=0), P.max(axis=0)))
+        report.warnings.extend(check_part_overlaps(part, P.min(axis=0) - grow, P.max(axis=0) + grow))
     return []
 
 

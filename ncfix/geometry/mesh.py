@@ -30,7 +30,7 @@ Role = Literal["head", "part"]
 # File suffix -> trimesh file type. Explicit, so an unknown suffix fails listing the known ones.
 MESH_FORMATS: dict[str, str] = {".stl": "stl", ".obj": "obj"}
 
-_OPTION = {"head": "--head", "part": "--part"}
+_OPTION = {"head": "--head", "part": "--part", "platform": "--platform"}
 
 
 @dataclass
@@ -49,17 +49,40 @@ class LoadedMesh:
     warnings: list[str] = field(default_factory=list)
 
 
-def load_mesh(path: str | Path, role: Role) -> LoadedMesh:
-    """Read a head or part mesh from STL (binary or ASCII) or OBJ and validate it.
+def load_mesh(path: str | Path, role: Role | Literal["platform"], base: np.ndarray | None = None) -> LoadedMesh:
+    """Read a head or part mesh from STL (binary or ASCII) or OBJ, validate it and place it.
 
+    path : the file, or the text form ``FILE@translate=X,Y,Z@rotate_deg=RX,RY,RZ``
+    (``ncfix.geometry.place``); base : (4, 4) a placement applied before that one (a profile's
+    platform). A platform is a part (role "part") that the --platform option named.
     Raises GeometryError when the file is missing, empty, not a mesh, has NaN coordinates,
     or (for a head) is not a closed solid even after filling holes.
     """
     if role not in _OPTION:
-        raise ValueError(f"role must be 'head' or 'part', not {role!r}")
-    path = Path(path)
-    where = str(path)
+        raise ValueError(f"role must be 'head', 'part' or 'platform', not {role!r}")
     option = _OPTION[role]
+    if role == "platform":
+        role = "part"
+    placement = None
+    if not isinstance(path, Path):
+        from ncfix.geometry.place import parse
+
+        placement, problem = parse(str(path))
+        if problem:
+            raise GeometryError(f"{option} {str(path)!r}: {problem}",
+                                fix="write PATH@translate=X,Y,Z@rotate_deg=RX,RY,RZ")
+        path = placement.path
+    loaded = _load_file(Path(path), role, option)
+    matrix = placement.matrix() if placement is not None and not placement.identity else None
+    if base is not None:
+        matrix = base if matrix is None else matrix @ base
+    if matrix is not None:
+        loaded.mesh.apply_transform(matrix)  # a rotation and a move: the winding stays outward
+    return loaded
+
+
+def _load_file(path: Path, role: Role, option: str) -> LoadedMesh:
+    where = str(path)
     if not path.is_file():
         raise GeometryError(
             f"the {role} mesh file does not exist", where=where, fix=f"check the {option} path"
