@@ -15,7 +15,8 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 from ncfix import __version__
-from ncfix.config import DEVICES, OPTION_NAMES, PIVOTS, STRATEGIES, Options, build_options, load_config
+from ncfix.config import (DEVICES, OPTION_NAMES, PIVOTS, STRATEGIES, Options, build_options, confine_outputs,
+                          load_config)
 from ncfix.errors import InternalError, NcfixError
 
 EXIT_OK, EXIT_COLLISIONS, EXIT_USAGE = 0, 1, 2
@@ -181,24 +182,29 @@ def _stdout() -> BinaryIO:
     return sys.stdout.buffer
 
 
-def _config_path(args: argparse.Namespace) -> Path:
+def _config_path(args: argparse.Namespace) -> tuple[Path, bool]:
     """-c PATH; else ./ncfix.toml; else ncfix.toml beside the input file (so a folder of programs
-    can carry its own settings: `ncfix samples/bathtub_273.nc`)."""
+    can carry its own settings: `ncfix samples/bathtub_273.nc`). The flag: found beside the input."""
     if args.config is not None:
-        return Path(args.config)
+        return Path(args.config), False
     here = Path("ncfix.toml")
     if here.exists() or args.input == "-":
-        return here
+        return here, False
     beside = Path(args.input).parent / "ncfix.toml"
-    return beside if beside.exists() else here
+    return (beside, True) if beside.exists() else (here, False)
 
 
 def _options(args: argparse.Namespace) -> Options:
     explicit = args.config is not None
-    path = _config_path(args)
+    path, beside = _config_path(args)
     config = load_config(path, explicit)
     cli = {name: getattr(args, name, None) for name in OPTION_NAMES}  # None: not given on the command line
-    return build_options(config, cli, where=str(path))
+    if beside:
+        confine_outputs(config, path, cli)  # someone else's file, maybe: it writes only in its folder
+    options = build_options(config, cli, where=str(path))
+    if path.is_file() and not options.quiet:
+        _stderr(f"ncfix: using config {path}")
+    return options
 
 
 def _run(args: argparse.Namespace, options: Options) -> int:

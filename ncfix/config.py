@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import difflib
 import math
+import os
 import tomllib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -78,11 +79,33 @@ def load_config(path: Path, explicit: bool) -> dict[str, Any]:
     for key in ("head", "report", "diff", "html"):  # paths in a config are relative to it
         if isinstance(table.get(key), str):
             table[key] = str(base / table[key])
+    if isinstance(table.get("part"), str):  # one part: the same as a list of one
+        table["part"] = [table["part"]]
     if isinstance(table.get("part"), list):
         table["part"] = [str(base / p) if isinstance(p, str) else p for p in table["part"]]
     if isinstance(table.get("machine"), str) and table["machine"].endswith(".toml"):
         table["machine"] = str(base / table["machine"])
     return dict(table)
+
+
+OUTPUT_KEYS = ("report", "diff", "html")
+
+
+def confine_outputs(config: dict[str, Any], path: Path, cli: dict[str, Any]) -> None:
+    """Refuse output paths of a config that ncfix found beside the input (not given with -c,
+    not in the working folder) when they lead outside that config's folder: a folder of programs
+    from elsewhere must not make ncfix overwrite files anywhere (``../``, absolute paths,
+    symlinks). Keys the command line overrides are not used, so not checked."""
+    folder = Path(os.path.realpath(path.parent))
+    for key in OUTPUT_KEYS:
+        value = config.get(key)
+        if not isinstance(value, str) or cli.get(key) is not None:
+            continue
+        target = Path(os.path.realpath(value))
+        if target != folder and folder not in target.parents:
+            raise ConfigError(f"key '{key}' writes outside the config's folder: '{value}'", where=str(path),
+                              fix=f"a config found beside the input writes only inside its folder; give "
+                                  f"--{key} on the command line or this config with -c")
 
 
 def build_options(config: dict[str, Any], cli: dict[str, Any], where: str = "ncfix.toml") -> Options:

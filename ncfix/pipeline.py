@@ -86,11 +86,12 @@ def build_stages(options: Options, profile: Profile, report: Report, box=None) -
         return []
     from pathlib import Path
 
-    from ncfix.collision.checker import Checker
+    from ncfix.collision.checker import Checker, resolve_device
     from ncfix.collision.stage import CheckStage
     from ncfix.collision.head import cached_head_model
     from ncfix.geometry.mesh import load_head, load_mesh
 
+    resolve_device(options.device)  # a missing GPU is said before the meshes are read
     head = load_head(options.head, options.head_tip, options.head_axis)
     report.warnings.extend(head.warnings)
     parts, loaded_parts = [], []

@@ -7,6 +7,7 @@ import errno
 import io
 import os
 import signal
+import stat
 import subprocess
 import sys
 import threading
@@ -123,7 +124,15 @@ def test_a_closed_standard_error_never_writes_to_standard_output(monkeypatch, pr
 
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full here")
 @pytest.mark.parametrize("option", ["-o", "--report", "--html"])  # (an empty diff writes no byte)
-def test_writing_to_a_full_device_is_an_error_and_the_device_stays(tmp_path, program, option, capsysbinary):
+def test_writing_to_a_full_device_is_an_error_and_the_device_stays(tmp_path, program, option, capsysbinary,
+                                                                   monkeypatch):
+    real_replace = os.replace
+
+    def guarded(src, dst):  # run as root, a regression would replace /dev/full: fail instead
+        assert not (os.path.exists(dst) and not stat.S_ISREG(os.stat(dst).st_mode)), f"replacing {dst}"
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", guarded)
     out = tmp_path / "out.nc"
     argv = [program, "-q", option, "/dev/full"] + (["-o", out] if option != "-o" else [])
     status, _, err = run_main(argv, capsysbinary)
@@ -241,3 +250,247 @@ def test_a_signal_leaves_no_temporary_file(tmp_path, signum):
     child.stdin.close()
     assert child.stderr.read() == b""
     assert list(tmp_path.iterdir()) == []
+
+
+# -- item 5: settings that would need more memory than there is, a missing GPU -------------------
+@pytest.fixture
+def plate(tmp_path):
+    mesh = trimesh.creation.box([40.0, 40.0, 4.0])
+    mesh.apply_translation([0.0, 0.0, -10.0])
+    path = tmp_path / "plate.stl"
+    mesh.export(path)
+    return path
+
+
+@pytest.mark.parametrize(
+    "pitch, message",
+    [
+        ("0.001", r"ncfix: error: the head model at pitch 0\.001 mm needs [\d.]+ TiB, more than the [\d.]+ [KMGT]iB "
+                  r"of memory available \(use --pitch [\d.]+ or coarser\)"),
+        ("1e-9", r"ncfix: error: the head model at pitch 1e-09 mm needs [\d.e+]+ EiB, more than the [\d.]+ [KMGT]iB "
+                 r"of memory available \(use --pitch [\d.]+ or coarser\)"),
+    ],
+)
+def test_a_pitch_too_fine_for_the_memory_is_refused_with_the_figure(tmp_path, program, plate, capsysbinary,
+                                                                   pitch, message):
+    import re
+
+    head = revolved_head(tmp_path)
+    out = tmp_path / "out.nc"
+    status, _, err = run_main([program, "-q", "--head", head, "--part", plate, "--pitch", pitch, "-o", out],
+                              capsysbinary)
+    assert status == 2
+    assert re.fullmatch(message + "\n", err), err
+    assert not out.exists()
+
+
+def test_a_part_grid_too_large_is_refused_naming_the_part(tmp_path, monkeypatch):
+    from ncfix.collision.grid import build_distance_grid
+    from ncfix.memory import ResourceError
+
+    import ncfix.memory as memory
+
+    monkeypatch.setattr(memory, "available_bytes", lambda: 1 << 20)  # 1 MiB left
+    mesh = trimesh.creation.box([40.0, 40.0, 4.0])
+    with pytest.raises(ResourceError, match=r"^the distance grid of plate\.stl at pitch 0\.5 mm needs [\d.]+ MiB, "
+                                            r"more than the 1\.0 MiB of memory available \(use --pitch [\d.]+ or coarser\)$"):
+        build_distance_grid(mesh, 0.5, name="part:plate.stl")
+
+
+def test_a_head_in_the_wrong_units_is_refused_naming_its_size(tmp_path, program, plate, capsysbinary):
+    mesh = trimesh.creation.revolve(np.array([[0.0, 0.0], [3.0, 2.0], [3.0, 22.0], [0.0, 22.0]]) * 1e4, sections=16)
+    mesh.export(tmp_path / "big.stl")
+    status, _, err = run_main([program, "-q", "--head", tmp_path / "big.stl", "--part", plate], capsysbinary)
+    assert status == 2
+    assert err.startswith("ncfix: error: the head model at pitch 0.5 mm needs ")
+    assert err.endswith("(the mesh spans 2.2e+05 mm: check that it is in the program's units)\n")
+
+
+def test_the_deposit_grid_is_checked_before_it_grows(monkeypatch):
+    from ncfix.collision.deposit import BeadField
+    from ncfix.memory import ResourceError
+
+    import ncfix.memory as memory
+
+    field = BeadField(1.0, 0.5)
+    field.add(np.array([[0.0, 0.0, 0.0], [0.4, 0.0, 0.0]]))
+    monkeypatch.setattr(memory, "available_bytes", lambda: 1 << 16)
+    with pytest.raises(ResourceError, match="^the deposit model's grid at pitch 0.5 mm needs "):
+        field.add(np.array([[500.0, 500.0, 500.0]]))
+
+
+def test_cuda_on_a_machine_without_it_is_an_input_error(tmp_path, program, capsysbinary):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a GPU")
+    status, _, err = run_main([program, "-q", "--head", revolved_head(tmp_path), "--device", "cuda"], capsysbinary)
+    assert status == 2
+    assert err.startswith("ncfix: error: --device cuda: ") and err.count("\n") == 1
+    assert "(use --device cpu or auto, or install a CUDA build of torch)" in err
+
+
+# -- item 6: numbers that are not finite ---------------------------------------------------------
+@pytest.mark.parametrize(
+    "block, message",
+    [
+        ("G1 Xnan Y2", "the X word 'Xnan' is not a finite number"),
+        ("G1 Xinf Y2", "the X word 'Xinf' is not a finite number"),
+        ("G1 X-Infinity Y2", "the X word 'X' is not a number"),
+        ("G1 X1e999 Y2", "the X word 'X1e999' is written with an exponent, which a controller reads as two words"),
+        ("G1 X1e-05 Y2", "the X word 'X1e-05' is written with an exponent, which a controller reads as two words"),
+        ("G1 X1 Y2 I0 J0 Knan", "the K word 'Knan' is not a finite number"),
+        ("G1 X1 Y2 Enan", "the E word 'Enan' is not a finite number"),
+        ("G2 X2 Y2 Inan J0", "the I word 'Inan' is not a finite number"),
+        ("G0 X=inf", "the X word 'Xinf' is not a finite number"),
+    ],
+)
+def test_non_finite_values_are_errors_naming_the_line(tmp_path, capsysbinary, block, message):
+    src = tmp_path / "n.nc"
+    src.write_bytes(b"G21\nG1 X1 Y1 Z1 I0 J0 K1\n" + block.encode() + b"\nM30\n")
+    out = tmp_path / "out.nc"
+    status, _, err = run_main([src, "-q", "-o", out], capsysbinary)
+    assert status == 2
+    fix = "write the value as a plain decimal number" if "exponent" in message else (
+        "correct the value in the program; ncfix never guesses a position")
+    assert err == f"ncfix: error: {src}:3: {message} ({fix})\n"
+    assert not out.exists()
+
+
+def test_an_upper_case_e_after_a_number_stays_an_e_word(tmp_path, capsysbinary):
+    src = tmp_path / "e.nc"
+    src.write_bytes(b"G21 G90\nG1X1Y2Z3E5\nG1 X2 Y2 Z3 E6.5\nM30\n")
+    assert run_main([src, "-q"], capsysbinary)[:2] == (0, src.read_bytes())
+
+
+@pytest.mark.parametrize("kind", ["ascii", "binary"])
+def test_a_mesh_with_an_infinite_vertex_is_one_error_line(tmp_path, program, kind):
+    box = trimesh.creation.box([10.0, 10.0, 10.0])
+    vertices = box.vertices.copy()
+    vertices[0, 0] = np.inf
+    with np.errstate(invalid="ignore"):  # trimesh's own normals of the bad mesh
+        bad = trimesh.Trimesh(vertices, box.faces, process=False)
+        data = (trimesh.exchange.stl.export_stl_ascii(bad).encode() if kind == "ascii"
+                else trimesh.exchange.stl.export_stl(bad))
+    path = tmp_path / "inf.stl"
+    path.write_bytes(data)
+    done = ncfix_process(program, "-q", "--head", revolved_head(tmp_path), "--part", path)
+    assert done.returncode == 2
+    lines = done.stderr.decode().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"ncfix: error: {path}: "), done.stderr.decode()
+    assert "vertices have NaN or infinite coordinates (repair the mesh in CAD and export it again)" in lines[0]
+
+
+# -- item 9 (part): a mesh path that is a folder --------------------------------------------------
+@pytest.mark.parametrize("option", ["--head", "--part"])
+def test_a_mesh_path_that_is_a_folder_says_so(tmp_path, program, capsysbinary, option):
+    folder = tmp_path / "meshes"
+    folder.mkdir()
+    args = ["--head", folder] if option == "--head" else ["--head", revolved_head(tmp_path), "--part", folder]
+    status, _, err = run_main([program, "-q", *args], capsysbinary)
+    role = option[2:]
+    assert (status, err) == (2, f"ncfix: error: {folder}: the {role} mesh path is a folder "
+                                f"(give the mesh file's path to {option})\n")
+
+
+# -- item 8: which config, and where it may write -------------------------------------------------
+@pytest.fixture
+def folder_with_config(tmp_path):
+    folder = tmp_path / "programs"
+    folder.mkdir()
+    (folder / "p.nc").write_bytes(PROGRAM)
+    work = tmp_path / "work"
+    work.mkdir()
+    return folder, work
+
+
+def test_the_config_read_is_named_on_stderr(folder_with_config, monkeypatch, capsysbinary):
+    folder, work = folder_with_config
+    (folder / "ncfix.toml").write_text('[ncfix]\nmachine = "ijk"\n')
+    monkeypatch.chdir(work)
+    status, out, err = run_main([folder / "p.nc"], capsysbinary)
+    assert status == 0 and out == PROGRAM
+    assert err.splitlines()[0] == f"ncfix: using config {folder / 'ncfix.toml'}"
+    assert run_main([folder / "p.nc", "-q"], capsysbinary)[2] == ""
+
+
+@pytest.mark.parametrize("key", ["report", "diff", "html"])
+@pytest.mark.parametrize("value", ["../stolen.out", "/tmp/ncfix-stolen.out", "sub/../../stolen.out", "link/x.out"])
+def test_a_config_beside_the_input_writes_only_inside_its_folder(folder_with_config, monkeypatch, capsysbinary,
+                                                                 key, value):
+    folder, work = folder_with_config
+    (folder / "link").symlink_to(work)
+    (folder / "ncfix.toml").write_text(f'[ncfix]\n{key} = "{value}"\n')
+    monkeypatch.chdir(work)
+    status, out, err = run_main([folder / "p.nc", "-q"], capsysbinary)
+    assert status == 2 and out == b""
+    assert err == (f"ncfix: error: {folder / 'ncfix.toml'}: key '{key}' writes outside the config's folder: "
+                   f"'{folder / value if not value.startswith('/') else value}' (a config found beside the input "
+                   f"writes only inside its folder; give --{key} on the command line or this config with -c)\n")
+    assert not (folder.parent / "stolen.out").exists() and not Path("/tmp/ncfix-stolen.out").exists()
+    # The same config given with -c is the user's choice; the command line's path wins without a check.
+    assert run_main([folder / "p.nc", "-q", f"--{key}", work / "mine.out"], capsysbinary)[0] == 0
+    assert (work / "mine.out").exists()
+
+
+def test_a_config_beside_the_input_may_write_inside_its_folder(folder_with_config, monkeypatch, capsysbinary):
+    folder, work = folder_with_config
+    (folder / "ncfix.toml").write_text('[ncfix]\nreport = "reports/r.json"\n')
+    (folder / "reports").mkdir()
+    monkeypatch.chdir(work)
+    assert run_main([folder / "p.nc", "-q"], capsysbinary)[0] == 0
+    assert (folder / "reports" / "r.json").exists()
+
+
+def test_one_part_as_a_string_resolves_like_the_list_form(tmp_path):
+    from ncfix.config import build_options, load_config
+
+    (tmp_path / "a.toml").write_text('[ncfix]\npart = "mold.stl"\n')
+    (tmp_path / "b.toml").write_text('[ncfix]\npart = ["mold.stl"]\n')
+    a = build_options(load_config(tmp_path / "a.toml", True), {})
+    b = build_options(load_config(tmp_path / "b.toml", True), {})
+    assert a.part == b.part == (str(tmp_path / "mold.stl"),)
+
+
+# -- unforeseen failures ---------------------------------------------------------------------------
+def test_an_unforeseen_exception_is_exit_2_with_one_line_and_no_output(tmp_path, program, monkeypatch,
+                                                                        capsysbinary):
+    import ncfix.pipeline
+
+    def broken(*args, **kwargs):
+        raise KeyError("boom")
+
+    monkeypatch.setattr(ncfix.pipeline.Writer, "render", broken)
+    out = tmp_path / "out.nc"
+    status, stdout, err = run_main([program, "-q", "-o", out, "--report", tmp_path / "r.json"], capsysbinary)
+    assert (status, stdout) == (2, b"")
+    assert err == "ncfix: internal error: KeyError: 'boom'; run with -v for the traceback\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.nc"]
+    status, _, err = run_main([program, "-v", "-o", out], capsysbinary)
+    assert status == 2
+    assert err.startswith("Traceback (most recent call last):") and "KeyError: 'boom'" in err
+    assert err.splitlines()[-1] == "ncfix: internal error: KeyError: 'boom'"
+
+
+def test_the_api_raises_an_ncfix_error_for_an_unforeseen_exception(tmp_path, program, monkeypatch):
+    import ncfix.pipeline
+
+    monkeypatch.setattr(ncfix.pipeline.Writer, "render", lambda *a, **k: 1 / 0)
+    with pytest.raises(NcfixError) as caught:
+        ncfix.process(program, tmp_path / "out.nc")
+    assert isinstance(caught.value, InternalError)
+    assert str(caught.value) == "internal error: ZeroDivisionError: division by zero"
+    assert isinstance(caught.value.__cause__, ZeroDivisionError)
+    assert not (tmp_path / "out.nc").exists()
+
+
+def test_running_out_of_memory_anyway_is_exit_2(tmp_path, program, monkeypatch, capsysbinary):
+    import ncfix.pipeline
+
+    def exhausted(*args, **kwargs):
+        raise MemoryError()
+
+    monkeypatch.setattr(ncfix.pipeline.Writer, "render", exhausted)
+    status, _, err = run_main([program, "-q"], capsysbinary)
+    assert (status, err) == (2, "ncfix: error: out of memory (use a coarser --pitch, a smaller --window or "
+                                "smaller meshes)\n")

@@ -51,6 +51,7 @@ from ncfix.collision.split import thread_count
 from ncfix.collision.grid import DistanceGrid, cached_distance_grid
 from ncfix.collision.head import HeadModel, SphereTree, cached_sphere_tree
 from ncfix.collision.proximity import cached_head_proximity
+from ncfix.errors import ConfigError
 from ncfix.geometry.near import cached_near_surface
 from ncfix.reference import ExactReference
 
@@ -108,11 +109,17 @@ def one_thread():
 
 
 def resolve_device(name: str) -> str:
-    """'auto' → 'cuda' when torch sees a GPU, else 'cpu'."""
+    """'auto' → 'cuda' when torch sees a GPU, else 'cpu'; 'cuda' without one is an input error."""
     import torch
 
     if name == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        if torch.version.cuda is None:
+            why = f"this torch ({torch.__version__}) is built for the CPU only"
+        else:
+            why = "no CUDA GPU is visible to this process"
+        raise ConfigError(f"--device cuda: {why}", fix="use --device cpu or auto, or install a CUDA build of torch")
     return name
 
 
