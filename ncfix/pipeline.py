@@ -94,6 +94,13 @@ def build_stages(options: Options, profile: Profile, report: Report, box=None) -
     resolve_device(options.device)  # a missing GPU is said before the meshes are read
     head = load_head(options.head, options.head_tip, options.head_axis)
     report.warnings.extend(head.warnings)
+    height = float(head.mesh.vertices[:, 2].max())  # head frame: the tip at 0, the axis +Z
+    if options.bead_radius > 0 and options.tip_allowance >= height:
+        from ncfix.errors import ConfigError
+
+        raise ConfigError(f"--tip-allowance {options.tip_allowance:g} mm is not below the top of the head "
+                          f"({height:.4g} mm above its tip): no part of it would be checked against deposited "
+                          "material", fix="use a smaller --tip-allowance, or check the head mesh and --head-tip")
     parts, loaded_parts = [], []
     for path in options.part:
         loaded = load_mesh(path, "part")

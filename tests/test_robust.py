@@ -357,6 +357,25 @@ def test_non_finite_values_are_errors_naming_the_line(tmp_path, capsysbinary, bl
     assert not out.exists()
 
 
+def test_an_arc_centre_that_is_not_a_number_is_an_error_naming_the_line(tmp_path, capsysbinary):
+    src = tmp_path / "arc.nc"
+    src.write_bytes(b"G21 G90\nG1 X0 Y0 Z0 B0\nG2 X1 Y1 Z0 B0 I1.2.3 J0\nM30\n")
+    status, _, err = run_main([src, "-q", "--machine", "head-bc"], capsysbinary)
+    assert (status, err) == (2, f"ncfix: error: {src}:3: the I word 'I1.2.3' is not a number "
+                                "(correct the arc's centre or radius in the program)\n")
+
+
+def test_a_tip_allowance_above_the_whole_head_is_an_input_error(tmp_path, program, capsysbinary):
+    flat = trimesh.creation.box([1.0, 1.0, 0.5])
+    flat.apply_translation([0.0, 0.0, 0.25])
+    flat.export(tmp_path / "flat.stl")
+    status, _, err = run_main([program, "-q", "--head", tmp_path / "flat.stl"], capsysbinary)
+    assert (status, err) == (2, "ncfix: error: --tip-allowance 1 mm is not below the top of the head (0.5 mm above "
+                                "its tip): no part of it would be checked against deposited material (use a smaller "
+                                "--tip-allowance, or check the head mesh and --head-tip)\n")
+    assert run_main([program, "-q", "--head", tmp_path / "flat.stl", "--tip-allowance", "0.2"], capsysbinary)[0] == 0
+
+
 def test_an_upper_case_e_after_a_number_stays_an_e_word(tmp_path, capsysbinary):
     src = tmp_path / "e.nc"
     src.write_bytes(b"G21 G90\nG1X1Y2Z3E5\nG1 X2 Y2 Z3 E6.5\nM30\n")

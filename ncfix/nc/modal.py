@@ -439,6 +439,10 @@ class Interpreter:
             elif self.motion is not None:
                 block.motion = self.motion
                 if self.motion in (2, 3) or (self.heidenhain and heidenhain_kind in _HEIDENHAIN_ARC):
+                    for addr, text in arc_words.items():  # "": an expression, the arc is not followed
+                        if text and not _is_plain_number(text):
+                            raise self._fail(lineno, f"the {addr} word '{addr}{text.strip()}' is not a number",
+                                             "correct the arc's centre or radius in the program")
                     block.arc = self._arc(start, [new[self.index[a]] for a in "XYZ"], arc_words, code,
                                           heidenhain_kind)
         block.opaque = opaque
