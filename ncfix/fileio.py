@@ -110,16 +110,16 @@ class Input:
 
 
 def _is_regular_target(path: str) -> tuple[bool, Path]:
-    """(True, the file to replace) for a regular file, a symlink to one or a new name; (False,
-    the path) for anything else that exists (device node, FIFO, socket)."""
-    real = Path(os.path.realpath(path))
+    """(True, the file to replace: symlinks followed) for a regular file or a new name; (False,
+    the path) for anything else that exists (device node, FIFO, socket, ``/dev/stdout``: stat
+    follows /proc's links to pipes, which realpath cannot name)."""
     try:
-        info = os.stat(real)
-    except FileNotFoundError:
-        return True, real
-    except OSError:
-        return True, real  # let the write report what is wrong
-    return stat.S_ISREG(info.st_mode), real
+        info = os.stat(path)
+    except OSError:  # a new name (or a dangling symlink): created, and errors said, when written
+        info = None
+    if info is not None and not stat.S_ISREG(info.st_mode):
+        return False, Path(path)
+    return True, Path(os.path.realpath(path))
 
 
 @contextlib.contextmanager

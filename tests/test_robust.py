@@ -204,6 +204,12 @@ def test_output_onto_a_symlink_replaces_its_target_and_keeps_the_link(tmp_path, 
     assert (tmp_path / "real.nc").stat().st_mode & 0o777 == 0o640
 
 
+def test_output_onto_dev_stdout_reaches_the_pipe(tmp_path, program):
+    done = ncfix_process(program, "-q", "-o", "/dev/stdout", "--report", "/dev/stderr")
+    assert (done.returncode, done.stdout) == (0, PROGRAM)
+    assert done.stderr.startswith(b"{\n") and b'"schema": 1' in done.stderr
+
+
 def test_short_writes_are_completed_and_a_failure_after_one_is_reported():
     from ncfix.fileio import Output
 
@@ -434,10 +440,11 @@ def test_the_config_read_is_named_on_stderr(folder_with_config, monkeypatch, cap
 
 
 @pytest.mark.parametrize("key", ["report", "diff", "html"])
-@pytest.mark.parametrize("value", ["../stolen.out", "/tmp/ncfix-stolen.out", "sub/../../stolen.out", "link/x.out"])
+@pytest.mark.parametrize("value", ["../stolen.out", "{absolute}", "sub/../../stolen.out", "link/x.out"])
 def test_a_config_beside_the_input_writes_only_inside_its_folder(folder_with_config, monkeypatch, capsysbinary,
                                                                  key, value):
     folder, work = folder_with_config
+    value = value.format(absolute=folder.parent / "stolen.out")
     (folder / "link").symlink_to(work)
     (folder / "ncfix.toml").write_text(f'[ncfix]\n{key} = "{value}"\n')
     monkeypatch.chdir(work)
@@ -446,7 +453,7 @@ def test_a_config_beside_the_input_writes_only_inside_its_folder(folder_with_con
     assert err == (f"ncfix: error: {folder / 'ncfix.toml'}: key '{key}' writes outside the config's folder: "
                    f"'{folder / value if not value.startswith('/') else value}' (a config found beside the input "
                    f"writes only inside its folder; give --{key} on the command line or this config with -c)\n")
-    assert not (folder.parent / "stolen.out").exists() and not Path("/tmp/ncfix-stolen.out").exists()
+    assert not (folder.parent / "stolen.out").exists() and not (work / "x.out").exists()
     # The same config given with -c is the user's choice; the command line's path wins without a check.
     assert run_main([folder / "p.nc", "-q", f"--{key}", work / "mine.out"], capsysbinary)[0] == 0
     assert (work / "mine.out").exists()
