@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any, BinaryIO, Union
 
 from ncfix.config import OPTION_NAMES, Options, build_options, load_config
-from ncfix.errors import ConfigError, NcfixError
+from ncfix.errors import ConfigError, InternalError, NcfixError
 
 if TYPE_CHECKING:
     from ncfix.report import Report
@@ -32,8 +32,9 @@ def process(src: Source, dst: Source, *, config: str | os.PathLike[str] | None =
     TOML file read as ``-c`` reads it (keywords win); no config file is read without it.
     ``progress(bytes_done, lines_done)`` is called after each chunk of 4,096 lines.
 
-    Raises an :class:`ncfix.NcfixError` subclass where the command line exits 2. Nothing is
-    printed; ``report.exit_code`` is the command line's status (0: no collision left, 1:
+    Raises an :class:`ncfix.NcfixError` subclass where the command line exits 2, also for a
+    failure ncfix did not foresee (:class:`ncfix.errors.InternalError`, the original exception
+    as its ``__cause__``); a path ``dst`` is then not written. Nothing is printed; ``report.exit_code`` is the command line's status (0: no collision left, 1:
     collisions remain) and ``report.verdict`` says it in a line.
     """
     for key in options:
@@ -43,17 +44,42 @@ def process(src: Source, dst: Source, *, config: str | os.PathLike[str] | None =
             raise ConfigError(f"ncfix.process() got an unknown option '{key}'", fix=hint)
     table: dict[str, Any] = {}
     where = "ncfix.process()"
-    if config is not None:
-        path = Path(os.fspath(config))
-        table = load_config(path, explicit=True)
-        where = str(path)
-    values = {key: _plain(value) for key, value in options.items()}
-    return process_options(src, dst, build_options(table, values, where=where), progress=progress)
+    with internal_errors():
+        if config is not None:
+            path = Path(os.fspath(config))
+            table = load_config(path, explicit=True)
+            where = str(path)
+        values = {key: _plain(value) for key, value in options.items()}
+        built = build_options(table, values, where=where)
+    return process_options(src, dst, built, progress=progress)
 
 
 def process_options(src: Source, dst: Source, options: Options, *, progress: Progress | None = None) -> "Report":
-    """:func:`process` with options already checked (the command line comes in here)."""
-    from ncfix.fileio import atomic_output
+    """:func:`process` with options already checked (the command line comes in here).
+
+    Any failure is an :class:`NcfixError`: an unexpected exception becomes an
+    :class:`InternalError` (its ``__cause__`` the original), running out of memory an error
+    naming the settings to change; ``BrokenPipeError`` (the reader of ``dst`` went away) and
+    ``KeyboardInterrupt`` pass as they are. A path ``dst`` is never left partly written."""
+    with internal_errors():
+        return _process_options(src, dst, options, progress)
+
+
+@contextmanager
+def internal_errors() -> Iterator[None]:
+    """Turn exceptions that are not ncfix's own into :class:`NcfixError` (``process_options``)."""
+    try:
+        yield
+    except (NcfixError, BrokenPipeError):
+        raise
+    except MemoryError:
+        raise NcfixError("out of memory", fix="use a coarser --pitch, a smaller --window or smaller meshes") from None
+    except Exception as exc:
+        raise InternalError.wrap(exc) from exc
+
+
+def _process_options(src: Source, dst: Source, options: Options, progress: Progress | None) -> "Report":
+    from ncfix.fileio import Output, atomic_output
     from ncfix.pipeline import run
 
     for path in (dst if _is_path(dst) else None, options.report, options.diff, options.html):
@@ -66,10 +92,12 @@ def process_options(src: Source, dst: Source, options: Options, *, progress: Pro
                 report = run(stream, out, options, source, progress)
                 _write_extras(report, options, source, target)  # the program appears only if these worked
         else:
-            out = _binary(dst, "dst")
+            raw = _binary(dst, "dst")
+            name = _name(raw, "<stream>")
+            out = Output(raw, "standard output" if name == "<stdout>" else name)
             report = run(stream, out, options, source, progress)
             out.flush()
-            _write_extras(report, options, source, _name(out, "<stream>"))
+            _write_extras(report, options, source, name)
     return report
 
 
@@ -108,9 +136,12 @@ def _add_part_previews(report: "Report", options: Options) -> None:
 
 @contextmanager
 def _input(src: Source) -> Iterator[tuple[BinaryIO, str]]:
+    from ncfix.fileio import Input
+
     if not _is_path(src):
         stream = _binary(src, "src")
-        yield stream, _name(stream, "<stream>")
+        name = _name(stream, "<stream>")
+        yield Input(stream, "standard input" if name == "<stdin>" else name), name
         return
     path = os.fspath(src)
     p = Path(path)
@@ -123,7 +154,7 @@ def _input(src: Source) -> Iterator[tuple[BinaryIO, str]]:
     except OSError as exc:
         raise NcfixError(f"cannot read '{path}': {exc.strerror}", fix="check the file's permissions") from None
     with handle:
-        yield handle, path
+        yield Input(handle, path), path
 
 
 def _check_writable(path: str) -> None:

@@ -7,16 +7,18 @@ import contextlib
 import io
 import logging
 import os
+import signal
 import stat
 import sys
 import traceback
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 from ncfix import __version__
-from ncfix.config import DEVICES, OPTION_NAMES, PIVOTS, STRATEGIES, Options, build_options, load_config
-from ncfix.errors import NcfixError
+from ncfix.config import (DEVICES, OPTION_NAMES, PIVOTS, STRATEGIES, Options, build_options, confine_outputs,
+                          load_config)
+from ncfix.errors import InternalError, NcfixError
 
 EXIT_OK, EXIT_COLLISIONS, EXIT_USAGE = 0, 1, 2
 EXIT_BROKEN_PIPE = 141  # what a shell reports for a filter whose reader went away (128 + SIGPIPE)
@@ -28,7 +30,9 @@ def _parser() -> argparse.ArgumentParser:
         description="Find and fix deposition-head collisions in 5-axis AM NC programs. "
         "Every line ncfix does not change is written byte for byte.",
         epilog="Every option is also a key of the TOML config (table [ncfix], '_' for '-'); the command line wins. "
-        "Exit status: 0 no collision left, 1 collisions remain, 2 usage or input error.",
+        "Exit status: 0 no collision left, 1 collisions remain (output written), 2 usage, input, "
+        "system or internal error (nothing written to -o), 141 the reader of the output went away, "
+        "143/129 ended by SIGTERM/SIGHUP.",
     )
     p.add_argument("input", nargs="?", default="-", metavar="INPUT", help="NC program; '-' or nothing reads standard input")
     p.add_argument("-o", "--output", metavar="OUTPUT", help="write here (atomically) instead of standard output")
@@ -71,31 +75,36 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     verbose = bool(args.verbose)
-    try:
-        if args.list_machines:
-            return _list_machines()
-        options = _options(args)
-        with _notices(enabled=not options.quiet):
-            return _run(args, options)
-    except NcfixError as exc:
-        if verbose:
-            traceback.print_exc()
-        _stderr(f"ncfix: error: {exc}")
-        return exc.exit_code
-    except BrokenPipeError:
-        # The reader went away (`ncfix big.nc | head`): stop quietly, like any filter.
-        with contextlib.suppress(OSError):
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, sys.stdout.fileno())
-        return EXIT_BROKEN_PIPE
-    except KeyboardInterrupt:
-        _stderr("ncfix: interrupted")
-        return 130
-
-
-def _stderr(text: str) -> None:
-    with contextlib.suppress(OSError):
-        print(text, file=sys.stderr)
+    with _signals_end_the_run():
+        try:
+            if args.list_machines:
+                return _list_machines()
+            options = _options(args)
+            with _notices(enabled=not options.quiet):
+                return _run(args, options)
+        except InternalError as exc:
+            return _internal_error(exc, exc.__cause__ or exc, verbose)
+        except NcfixError as exc:
+            if verbose:
+                _traceback(exc)
+            _stderr(f"ncfix: error: {exc}")
+            return exc.exit_code
+        except BrokenPipeError:
+            # The reader went away (`ncfix big.nc | head`): stop quietly, like any filter.
+            with contextlib.suppress(OSError, AttributeError, ValueError):
+                devnull = os.open(os.devnull, os.O_WRONLY)
+                os.dup2(devnull, sys.stdout.fileno())
+            return EXIT_BROKEN_PIPE
+        except KeyboardInterrupt:
+            _stderr("ncfix: interrupted")
+            return 128 + signal.SIGINT
+        except Terminated as exc:
+            return 128 + exc.signum
+        except MemoryError:
+            _stderr("ncfix: error: out of memory (use a coarser --pitch, a smaller --window or smaller meshes)")
+            return EXIT_USAGE
+        except Exception as exc:  # a bug: exit 2 (never 1, which says "output written"), one line
+            return _internal_error(InternalError.wrap(exc), exc, verbose)
 
 
 @contextlib.contextmanager
@@ -115,46 +124,130 @@ def _notices(enabled: bool) -> Iterator[None]:
         logger.removeHandler(handler)
 
 
+def _internal_error(error: InternalError, cause: BaseException, verbose: bool) -> int:
+    if verbose:
+        _traceback(cause)
+        _stderr(f"ncfix: {error.message}")
+    else:
+        _stderr(f"ncfix: {error.message}; run with -v for the traceback")
+    return EXIT_USAGE
+
+
+def _traceback(exc: BaseException) -> None:
+    if sys.stderr is not None:
+        with contextlib.suppress(OSError, ValueError):
+            traceback.print_exception(exc, file=sys.stderr)
+
+
+class Terminated(BaseException):
+    """SIGTERM or SIGHUP arrived: unwind (temporary files are removed on the way) and exit 128 + N."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+@contextlib.contextmanager
+def _signals_end_the_run() -> Iterator[None]:
+    """SIGTERM and SIGHUP end the run as an exception, so no temporary file of ``-o``,
+    ``--report`` … is left behind; the exit status is then the shell's 128 + N (143, 129).
+    Only in the main thread (Python allows handlers nowhere else); the old handlers come back."""
+    from ncfix.fileio import remove_temporary_files
+
+    previous: dict[int, Any] = {}
+
+    def handler(signum: int, frame: Any) -> None:
+        for number in previous:  # a second signal must not cut the clean-up short
+            signal.signal(number, signal.SIG_IGN)
+        remove_temporary_files()
+        raise Terminated(signum)
+
+    try:
+        for number in (signal.SIGTERM, signal.SIGHUP):
+            previous[number] = signal.signal(number, handler)
+    except ValueError:  # not the main thread
+        pass
+    try:
+        yield
+    finally:
+        for number, old in previous.items():
+            with contextlib.suppress(ValueError, TypeError):
+                signal.signal(number, old)
+
+
+def _stderr(text: str) -> None:
+    if sys.stderr is None:  # closed (2>&-): print(file=None) would write to standard output
+        return
+    with contextlib.suppress(OSError, ValueError):
+        print(text, file=sys.stderr, flush=True)
+
+
 def _list_machines() -> int:
     from ncfix.profiles import builtin_names, load_profile
 
+    from ncfix.fileio import Output
+
+    out = Output(_stdout(), "standard output")
     for name in builtin_names():
         profile = load_profile(name)
-        print(f"{name:22} {profile.description}")
+        out.write(f"{name:22} {profile.description}\n".encode())
+    out.flush()
     return EXIT_OK
 
 
-def _config_path(args: argparse.Namespace) -> Path:
+def _stdin() -> BinaryIO:
+    if sys.stdin is None:
+        raise NcfixError("cannot read standard input: it is closed", fix="give the NC program's path or redirect standard input")
+    return sys.stdin.buffer
+
+
+def _stdout() -> BinaryIO:
+    if sys.stdout is None:
+        raise NcfixError("cannot write standard output: it is closed", fix="give -o OUTPUT or redirect standard output")
+    return sys.stdout.buffer
+
+
+def _config_path(args: argparse.Namespace) -> tuple[Path, bool]:
     """-c PATH; else ./ncfix.toml; else ncfix.toml beside the input file (so a folder of programs
-    can carry its own settings: `ncfix samples/bathtub_273.nc`)."""
+    can carry its own settings: `ncfix samples/bathtub_273.nc`). The flag: found beside the input."""
     if args.config is not None:
-        return Path(args.config)
+        return Path(args.config), False
     here = Path("ncfix.toml")
     if here.exists() or args.input == "-":
-        return here
+        return here, False
     beside = Path(args.input).parent / "ncfix.toml"
-    return beside if beside.exists() else here
+    return (beside, True) if beside.exists() else (here, False)
 
 
 def _options(args: argparse.Namespace) -> Options:
     explicit = args.config is not None
-    path = _config_path(args)
+    path, beside = _config_path(args)
     config = load_config(path, explicit)
     cli = {name: getattr(args, name, None) for name in OPTION_NAMES}  # None: not given on the command line
-    return build_options(config, cli, where=str(path))
+    if beside:
+        confine_outputs(config, path, cli)  # someone else's file, maybe: it writes only in its folder
+    options = build_options(config, cli, where=str(path))
+    if path.is_file() and not options.quiet:
+        _stderr(f"ncfix: using config {path}")
+    return options
 
 
 def _run(args: argparse.Namespace, options: Options) -> int:
     from ncfix.api import process_options
 
-    src = sys.stdin.buffer if args.input == "-" else args.input
-    dst = args.output if args.output else sys.stdout.buffer
+    src = _stdin() if args.input == "-" else args.input
+    dst = args.output if args.output else _stdout()
     with _progress(src, enabled=not options.quiet) as progress:
         report = process_options(src, dst, options, progress=progress)
-    if not options.quiet:
+    if not options.quiet and sys.stderr is not None:
         from ncfix.summary import print_summary
 
-        print_summary(report, verbose=options.verbose)
+        try:
+            print_summary(report, verbose=options.verbose)
+        except (OSError, ValueError):  # standard error is gone or full: the output is written, its status stands
+            pass
+        except Exception as exc:  # a bug in the summary must not turn a written output into exit 2
+            _stderr(f"ncfix: internal error printing the summary: {type(exc).__name__}: {exc}")
     return report.exit_code
 
 

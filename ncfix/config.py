@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import difflib
 import math
+import os
 import tomllib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
@@ -94,6 +95,8 @@ def load_config(path: Path, explicit: bool) -> dict[str, Any]:
         table["part"] = [_mesh_entry(p, "part", base, path) for p in entries]
     elif isinstance(table.get("part"), str):
         table["part"] = [_mesh_entry(table["part"], "part", base, path)]
+    if isinstance(table.get("machine"), str) and table["machine"].endswith(".toml"):
+        table["machine"] = str(base / table["machine"])
     return dict(table)
 
 
@@ -122,6 +125,26 @@ def _mesh_entry(entry: Any, key: str, base: Path, config: Path) -> Any:
                                   where=str(config), fix="give three numbers, e.g. [0, 0, -40.5]")
             values[name] = vec
     return Placement(str(base / entry["path"]), **values).text()
+
+
+OUTPUT_KEYS = ("report", "diff", "html")
+
+
+def confine_outputs(config: dict[str, Any], path: Path, cli: dict[str, Any]) -> None:
+    """Refuse output paths of a config that ncfix found beside the input (not given with -c,
+    not in the working folder) when they lead outside that config's folder: a folder of programs
+    from elsewhere must not make ncfix overwrite files anywhere (``../``, absolute paths,
+    symlinks). Keys the command line overrides are not used, so not checked."""
+    folder = Path(os.path.realpath(path.parent))
+    for key in OUTPUT_KEYS:
+        value = config.get(key)
+        if not isinstance(value, str) or cli.get(key) is not None:
+            continue
+        target = Path(os.path.realpath(value))
+        if target != folder and folder not in target.parents:
+            raise ConfigError(f"key '{key}' writes outside the config's folder: '{value}'", where=str(path),
+                              fix=f"a config found beside the input writes only inside its folder; give "
+                                  f"--{key} on the command line or this config with -c")
 
 
 def build_options(config: dict[str, Any], cli: dict[str, Any], where: str = "ncfix.toml") -> Options:

@@ -38,3 +38,14 @@ class ProgramError(NcfixError):
 
 class GeometryError(NcfixError):
     """A head or part mesh cannot be used as given."""
+
+
+class InternalError(NcfixError):
+    """An unexpected failure inside ncfix (a bug, or the machine ran out of something): the
+    command line says "internal error" and exits 2, ``-v`` shows the original traceback
+    (``__cause__``). The API raises it so a hook's ``except NcfixError`` still catches it."""
+
+    @classmethod
+    def wrap(cls, exc: BaseException) -> "InternalError":
+        text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        return cls(f"internal error: {type(exc).__name__}" + (f": {text}" if text else ""))

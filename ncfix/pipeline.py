@@ -100,14 +100,22 @@ def build_stages(options: Options, profile: Profile, report: Report, box=None) -
         return []
     from pathlib import Path
 
-    from ncfix.collision.checker import Checker
+    from ncfix.collision.checker import Checker, resolve_device
     from ncfix.collision.deposit import BeadShape
     from ncfix.collision.stage import CheckStage
     from ncfix.collision.head import cached_head_model
     from ncfix.geometry.mesh import load_head
 
+    resolve_device(options.device)  # a missing GPU is said before the meshes are read
     head = load_head(options.head, options.head_tip, options.head_axis)
     report.warnings.extend(head.warnings)
+    height = float(head.mesh.vertices[:, 2].max())  # head frame: the tip at 0, the axis +Z
+    if options.bead_radius > 0 and options.tip_allowance >= height:
+        from ncfix.errors import ConfigError
+
+        raise ConfigError(f"--tip-allowance {options.tip_allowance:g} mm is not below the top of the head "
+                          f"({height:.4g} mm above its tip): no part of it would be checked against deposited "
+                          "material", fix="use a smaller --tip-allowance, or check the head mesh and --head-tip")
     parts, loaded_parts = [], []
     for loaded in load_parts(options, profile):
         report.warnings.extend(loaded.warnings)

@@ -35,6 +35,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ncfix.geometry.cells import group_cells
+from ncfix.memory import ensure_fits
 
 # Exact bead centres kept (the newest; BeadStore): 2**18 beads is about 65 m of deposited path at
 # the 0.5 mm pitch (beads every 0.25 mm), 6 MB of centres and about as much of k-d trees.
@@ -445,7 +446,7 @@ class BeadField:
         need_lo = np.floor((pts.min(axis=0) - reach) / h).astype(np.int64) - 1
         need_hi = np.ceil((pts.max(axis=0) + reach) / h).astype(np.int64) + 2
         self.fine, self.fine_lo, grown_f = _regrid(self.fine, self.fine_lo, need_lo, need_hi,
-                                                   int(np.ceil(GROW_MM / h)), FINE_LEVELS)
+                                                   int(np.ceil(GROW_MM / h)), FINE_LEVELS, h)
         pad = int(np.ceil(COARSE_REACH_MM / self.coarse_mm)) + 2
         k = self._coarse_index(np.array([pts.min(axis=0), pts.max(axis=0)]))
         grow_c = int(np.ceil(GROW_MM / self.coarse_mm))
@@ -633,9 +634,11 @@ def _gather_np(grid: np.ndarray, lo: np.ndarray, idx: np.ndarray, default: float
     return out
 
 
-def _regrid(grid: np.ndarray, lo: np.ndarray, need_lo: np.ndarray, need_hi: np.ndarray, grow: int, fill):
+def _regrid(grid: np.ndarray, lo: np.ndarray, need_lo: np.ndarray, need_hi: np.ndarray, grow: int, fill,
+            pitch_mm: float | None = None):
     """A grid covering global indices [need_lo, need_hi) and the old one; content kept.
-    returns (grid, lo, grown)."""
+    returns (grid, lo, grown). Refused (``ensure_fits``) when the new grid cannot fit in memory
+    (``pitch_mm``: the --pitch the grid follows, for the message)."""
     hi = lo + np.array(grid.shape)
     empty = grid.size <= 1 and not np.any(grid != fill)
     if not empty and (need_lo >= lo).all() and (need_hi <= hi).all():
@@ -645,6 +648,8 @@ def _regrid(grid: np.ndarray, lo: np.ndarray, need_lo: np.ndarray, need_hi: np.n
     else:
         new_lo = np.where(need_lo < lo, np.minimum(need_lo, lo) - grow, lo)
         new_hi = np.where(need_hi > hi, np.maximum(need_hi, hi) + grow, hi)
+    cells = float(np.prod((new_hi - new_lo).astype(np.float64)))
+    ensure_fits("the deposit model's grid", cells, 2 * grid.itemsize, pitch_mm=pitch_mm)  # the old and the new
     out = np.full(tuple(int(x) for x in new_hi - new_lo), fill, dtype=grid.dtype)
     if not empty:
         o = lo - new_lo

@@ -38,12 +38,16 @@ import trimesh
 from ncfix import cache
 from ncfix.collision.voxelize import grid_frame, surface_cells, voxelize
 from ncfix.geometry.tolerances import TOLERANCES
+from ncfix.memory import ensure_fits, grid_cells
 
 # The EDT is stored in float32 (the `edt` package computes in float32): relative error ~1e-7.
 # This absolute slack (mm) dominates it for any grid up to 10 m, and float64 query arithmetic.
 EDT_SLACK_MM = 1e-4
 # Empty cells around the body: near it, lookups then stay inside the grid (tighter bounds).
 GRID_PAD_CELLS = 6
+# Peak bytes per cell while a grid is built (masks, the voxelizer's column sums, the EDT's float32
+# output): 29-35 measured on the sample mold at 1 and 0.5 mm; what ``ensure_fits`` checks.
+GRID_BUILD_BYTES_PER_CELL = 40
 # Cells outside the body with D below this (mm) store their exact distance (module doc).
 EXACT_BAND_MM = 4.0
 # A surface cell's centre nearer the surface than this (mm) keeps D: the voxelizer's jittered ray
@@ -205,6 +209,9 @@ def build_distance_grid(mesh: trimesh.Trimesh, pitch_mm: float, *, closed: bool 
         lo, hi = np.maximum(bounds[0], crop[0]), np.minimum(bounds[1], crop[1])
         if (lo <= hi).all() and ((lo > bounds[0]) | (hi < bounds[1])).any():
             bounds, cropped = np.array([lo, hi]), True
+    label = name.split(":", 1)[1] if name.startswith("part:") else f"the {name or 'mesh'}"
+    ensure_fits(f"the distance grid of {label}", grid_cells(bounds, pitch_mm, GRID_PAD_CELLS),
+                GRID_BUILD_BYTES_PER_CELL, pitch_mm=pitch_mm, extent_mm=float(np.ptp(bounds, axis=0).max()))
     origin, shape = grid_frame(bounds, pitch_mm, pad_cells=GRID_PAD_CELLS)
     marked, inside = marked_cells(mesh, closed, pitch_mm, origin, shape)
     if cropped:

@@ -31,10 +31,14 @@ import numpy as np
 
 from ncfix.collision.checker import Checker, rotation_angle
 from ncfix.collision.deposit import BeadStore, axial_moves, bead_samples
+from ncfix.geometry.frames import half_turn_direction
 from ncfix.kinematics.tool_vector import ToolVector
 
 # A sample hit with its sweep margin is checked again as this many finer samples (REFINE_LEVELS deep).
 REFINE_PARTS = 4
+# Unit tool vectors whose sum is this short are opposite: their linear blend would pass through
+# (or next to) zero, where no direction is defined (``PathChecker._half_turns``).
+_HALF_TURN = 1e-9
 
 
 @dataclass
@@ -229,7 +233,23 @@ class PathChecker:
             sel = np.nonzero(on_arc)[0]
             for j, col in enumerate(self.xyz):
                 words[sel, col] = pts[:, j]
+        if self.is_vector:
+            self._half_turns(words, ws[row], we[row], t)
         return words
+
+    @staticmethod
+    def _half_turns(words, ws, we, t) -> None:
+        """Tool vectors of moves that turn them by 180° (``K1`` then ``K-1``), in place: the
+        linear blend passes through zero there, so such a move turns in the plane through
+        ``half_turn_direction`` instead (a half turn has no unique shortest way; README)."""
+        a, b = ws[:, 3:6], we[:, 3:6]
+        flip = np.linalg.norm(a + b, axis=1) <= _HALF_TURN
+        flip &= np.isfinite(a).all(axis=1)
+        if not flip.any():
+            return
+        a = a[flip] / np.linalg.norm(a[flip], axis=1, keepdims=True)
+        angle = np.pi * t[flip]
+        words[flip, 3:6] = np.cos(angle)[:, None] * a + np.sin(angle)[:, None] * half_turn_direction(a)
 
     def bead_points(self, moves: Moves) -> np.ndarray:
         """The beads the moves lay (m, 3), as ``check`` lays them (for committing without a check)."""

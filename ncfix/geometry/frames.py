@@ -89,6 +89,21 @@ def minimal_rotation(n: np.ndarray) -> np.ndarray:
     return r
 
 
+def half_turn_direction(a: np.ndarray) -> np.ndarray:
+    """Where a 180° turn of the tool vector away from ``a`` passes at its middle: +X made
+    perpendicular to ``a``, or +Y where ``a`` is within ~26° of ±X.
+
+    A vector and its opposite have no unique shortest turn between them (every great circle
+    through both is one); ncfix takes this one, the plane ``rotation_between`` turns in for
+    opposite vectors and ``correct.blend.slerp`` for antipodal pairs, so it is repeatable.
+    a : (n, 3) float64 unit vectors → (n, 3) float64 unit vectors perpendicular to them.
+    """
+    a = np.asarray(a, dtype=np.float64).reshape(-1, 3)
+    helper = np.where((np.abs(a[:, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    u = helper - np.sum(helper * a, axis=1)[:, None] * a
+    return u / np.linalg.norm(u, axis=1, keepdims=True)
+
+
 def normalize(v: np.ndarray) -> np.ndarray:
     """Unit vectors along the rows of ``v`` (..., 3); zero rows stay zero."""
     v = np.asarray(v, dtype=np.float64)

@@ -13,6 +13,7 @@ Decisions, so that users and the next stages know what a mesh means:
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -83,7 +84,14 @@ def load_mesh(path: str | Path, role: Role | Literal["platform"], base: np.ndarr
 
 def _load_file(path: Path, role: Role, option: str) -> LoadedMesh:
     where = str(path)
+    if path.is_dir():
+        raise GeometryError(
+            f"the {role} mesh path is a folder", where=where, fix=f"give the mesh file's path to {option}"
+        )
     if not path.is_file():
+        if path.exists():
+            raise GeometryError(f"the {role} mesh path is not a regular file", where=where,
+                                fix=f"give a mesh file (STL or OBJ) to {option}")
         raise GeometryError(
             f"the {role} mesh file does not exist", where=where, fix=f"check the {option} path"
         )
@@ -110,8 +118,13 @@ def _read_triangles(path: Path, file_type: str, role: Role) -> trimesh.Trimesh:
         fix=f"export the {role} again as STL or OBJ",
     )
     try:
-        with open(path, "rb") as handle:
+        # NaN or infinite coordinates make trimesh's normals warn; _validate says it in one line.
+        with open(path, "rb") as handle, np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
             loaded = trimesh.load(handle, file_type=file_type, force="mesh", process=False)
+    except OSError as exc:
+        raise GeometryError(f"cannot read the {role} mesh: {exc.strerror or exc}", where=str(path),
+                            fix="check the file's permissions") from None
     except Exception as exc:  # trimesh raises many types for garbage input
         raise not_a_mesh from exc
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ncfix.memory import ensure_fits, grid_cells
+
 # The sign grid's cell edge (mm): a point farther than half its diagonal from the surface takes
 # the side of its nearest cell centre; nearer ones need a winding number.
 SIGN_PITCH_MM = 0.5
@@ -365,6 +367,9 @@ class NearSurface:
         from ncfix.collision.voxelize import voxelize
 
         vertices, faces = np.unique(self.triangles.reshape(-1, 3), axis=0, return_inverse=True)
+        bounds = np.array([vertices.min(axis=0), vertices.max(axis=0)])
+        ensure_fits(f"the exact test's sign grid of the head (at {SIGN_PITCH_MM:g} mm)",
+                    grid_cells(bounds, SIGN_PITCH_MM, 2), 24, extent_mm=float(np.ptp(bounds, axis=0).max()))
         grid = voxelize(vertices, faces.reshape(-1, 3), SIGN_PITCH_MM, pad_cells=2)
         self.inside = np.ascontiguousarray(grid.occupancy)
         self.sign_lo, self.sign_pitch = np.asarray(grid.origin_mm, dtype=np.float64), float(SIGN_PITCH_MM)

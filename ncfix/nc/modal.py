@@ -39,6 +39,12 @@ _MIN_RUN = 8  # shorter runs of plain lines are cheaper one by one than as array
 _HEIDENHAIN_ARC = {"C", "CR", "CT", "CP"}
 # Words of an arc: centre offsets and radius (Siemens CR=).
 _ARC_WORDS = {"I", "J", "K", "R", "CR"}
+# Non-finite values as float() would read them: `Xnan`, `Kinf`, `Xinfinity` (the lexer sees one
+# letter run). Longest first, so `XINFINITY` is not read as `XINFINI` + `TY`.
+_NON_FINITE = ("INFINITY", "NAN", "INF")
+# A number followed by a lower-case exponent (`X1e999`, `I1.5e-05`): what a program printed by
+# Python or C looks like; upper case `X1E5` is a compact `X1 E5` and stays two words.
+_EXPONENT_RE = re.compile(r"(?<![A-Za-z])([A-Za-z]+)[ \t]*([+\-]?[\d.]+e[+\-]?\d+)")
 # Plane code -> index of the axis normal to it, and the plane's two axes (right-handed with it).
 _PLANES = {17.0: 2, 18.0: 1, 19.0: 0}
 _PLANE_AXES = {2: (0, 1), 1: (2, 0), 0: (1, 2)}
@@ -221,6 +227,28 @@ class Interpreter:
         last = motion[-1]
         self.motion = None if np.isnan(last) else int(last)
 
+    def _no_exponents_or_infinities(self, lineno: int, code: str, pairs) -> None:
+        """``X1e-05`` (a number as Python prints it) is read by a controller as ``X1`` and
+        ``E-05``, and ``Xnan`` / ``Kinf`` as unknown words: each would move the machine
+        somewhere the CAM did not mean, so each is an error naming the line."""
+        m = _EXPONENT_RE.search(code)
+        if m is not None:
+            word = m.group(0).strip()
+            raise self._fail(lineno, f"the {m.group(1).upper()} word '{word}' is written with an exponent, which "
+                             f"a controller reads as two words", "write the value as a plain decimal number")
+        for _, _, addr, value in pairs:
+            upper = addr.upper()
+            for tail in _NON_FINITE:
+                head = upper[:-len(tail)]
+                if upper.endswith(tail) and head and (head in self.index or head == self.extrusion
+                                                      or head in _ARC_WORDS):
+                    raise self._not_finite(lineno, head, addr[len(head):] + value)
+
+    def _not_finite(self, lineno: int, letter: str, text: str) -> ProgramError:
+        """``Xnan``, ``Kinf``, ``X1e999``: float() reads them, no machine can go there."""
+        return self._fail(lineno, f"the {letter} word '{letter}{text}' is not a finite number",
+                          "correct the value in the program; ncfix never guesses a position")
+
     def _zero_vector(self, lineno: int) -> ProgramError:
         return self._fail(lineno, "the tool vector is (0, 0, 0)", "give a non-zero vector; a vertical tool is 0, 0, 1")
 
@@ -230,6 +258,8 @@ class Interpreter:
         pairs = WORD_RE.findall(code)
         if not pairs:
             return block
+        if "e" in code or "n" in code or "N" in code:
+            self._no_exponents_or_infinities(lineno, code, pairs)
 
         given: dict[int, str | None] = {}  # None: an expression ncfix cannot evaluate
         gs: list[float] = []
@@ -254,6 +284,8 @@ class Interpreter:
                 addr = addr.upper()
             if addr in _ARC_WORDS and value:
                 arc_words[addr] = value
+                if _is_plain_number(value) and not math.isfinite(parse_number(value)):
+                    raise self._not_finite(lineno, addr, value)
             if addr == "G":
                 try:
                     gs.append(parse_number(value))
@@ -348,6 +380,8 @@ class Interpreter:
                 e = parse_number(e_text)
             except ValueError:
                 e = None
+            if e is not None and not math.isfinite(e):
+                raise self._not_finite(lineno, self.extrusion, e_text)
             if e is not None:
                 if g92:
                     self.e_value = e
@@ -380,6 +414,8 @@ class Interpreter:
                         raise self._fail(lineno, f"the {letter} word '{letter}{text}' is not a number",
                                          "correct the value in the program; ncfix never guesses a position") from None
                     continue
+                if not math.isfinite(value):
+                    raise self._not_finite(lineno, letter, text)
                 if is_vector:
                     vector_given = True
                     continue
@@ -413,6 +449,10 @@ class Interpreter:
             elif self.motion is not None:
                 block.motion = self.motion
                 if self.motion in (2, 3) or (self.heidenhain and heidenhain_kind in _HEIDENHAIN_ARC):
+                    for addr, text in arc_words.items():  # "": an expression, the arc is not followed
+                        if text and not _is_plain_number(text):
+                            raise self._fail(lineno, f"the {addr} word '{addr}{text.strip()}' is not a number",
+                                             "correct the arc's centre or radius in the program")
                     block.arc = self._arc(start, [new[self.index[a]] for a in "XYZ"], arc_words, code,
                                           heidenhain_kind)
         block.opaque = opaque
