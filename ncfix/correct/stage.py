@@ -494,8 +494,10 @@ class CorrectStage:
         P0, N0, R0 = self.path.forward(r.programmed[rows], r.tcp[rows])
         P1, N1, R1 = self.path.forward(words, r.tcp[rows])
         tilt = angle_between_deg(N1, N0)
-        prev = np.vstack([self.path.forward(self._moves(first, first + 1).w_start,
-                                            r.tcp[rows[:1]])[1], N1[:-1]])
+        start = self._moves(first, first + 1).w_start
+        # The program's first motion block has no block before it: its step is 0.
+        before = self.path.forward(start, r.tcp[rows[:1]])[1] if np.isfinite(start).all() else N1[:1]
+        prev = np.vstack([before, N1[:-1]])
         step = angle_between_deg(N1, prev)
         ref = self.checker.reference
         for i in np.nonzero(changed)[0]:
