@@ -206,6 +206,11 @@ class CorrectStage:
         self.retired_seen = 0  # store.retired when the cached results were found
         self.head_corners = _head_corners(checker)
         self._decimals: dict[bytes, dict[str, int]] = {}  # as_printed: a line's decimals per kind of word
+        # line -> (first, last) lines of the changed moves whose beads moved within its reach (``_forget``):
+        # a collision found there was found after ncfix's own change (``_detected_after``).
+        self._beads_moved_by: dict[int, tuple[int, int]] = {}
+        report.summary.setdefault("freed_blocks", 0)
+        report.summary.setdefault("found_after_changes", 0)
 
     # -- stage protocol ------------------------------------------------------------------------
     def push(self, chunk):
@@ -249,6 +254,9 @@ class CorrectStage:
             self.detected = self.detected.drop(count)
             self.final -= count
             self.first_serial += 1
+        if self._beads_moved_by:  # lines already written cannot collide again
+            first = int(self.rows.line[0]) if len(self.rows) else None
+            self._beads_moved_by = {k: v for k, v in self._beads_moved_by.items() if first is not None and k >= first}
         return out
 
     def _moves(self, a: int, b: int) -> Moves:
@@ -391,6 +399,10 @@ class CorrectStage:
         near = near_beads(self.checker, d.lo[rows], d.hi[rows], [d.poses[r] for r in rows],
                           reach_mm(self.checker, d.margin[rows]), beads)
         d.valid[rows[near]] = False
+        moved = first + np.nonzero(changed)[0]
+        span = (int(self.rows.line[moved[0]]), int(self.rows.line[moved[-1]]))
+        for line in self.rows.line[rows[near]].tolist():
+            self._beads_moved_by.setdefault(int(line), span)
 
     def _solve(self, first: int, last: int, collided: dict[int, dict]) -> None:
         """Solve the episode (levels first..last), record its collisions, apply its words."""
@@ -414,31 +426,82 @@ class CorrectStage:
             if row in unresolved:
                 s["unresolved_blocks"] += 1
                 self.report.unresolved.append({"line": entry["line"], "bodies": entry["bodies"],
-                                               "penetration_mm": entry["penetration_mm"],
+                                               "penetration_mm": entry["penetration_mm"], "where": entry["where"],
                                                "reason": solution.reasons.get(row, "no free orientation found")})
         for row in sorted(unresolved - set(collided)):  # a move that collides only as rewritten
             s["unresolved_blocks"] += 1
             self.report.unresolved.append({"line": int(self.rows.line[row]), "bodies": [], "penetration_mm": None,
                                            "reason": solution.reasons.get(row, "collides after the blocks around it")})
         self._apply(first, last, solution.words, collided)
+        self._outcomes(collided, unresolved)
+
+    def _outcomes(self, collided: dict[int, dict], unresolved: set) -> None:
+        """Say in each collision entry of an episode what became of it (``outcome``): "tilted",
+        "unresolved", or "freed": left as programmed, its move is free once the blocks before it
+        are rewritten (``note`` says how); the summary counts the freed (``freed_blocks``)."""
+        r = self.rows
+        for row, entry in collided.items():
+            if row in unresolved:
+                entry["outcome"] = "unresolved"
+            elif not _same(r.words[row:row + 1], r.programmed[row:row + 1])[0]:
+                entry["outcome"] = "tilted"
+            else:
+                entry["outcome"] = "freed"
+                before = self._moves(row, row + 1).w_start
+                programmed = r.programmed[row - 1:row] if row > 0 else self.prev_programmed
+                if row > 0 and programmed is not None and not _same(before, np.reshape(programmed, (1, -1)))[0]:
+                    entry["note"] = (f"left as programmed: its move now starts from line {int(r.line[row - 1])} "
+                                     "as rewritten, and is free")
+                else:
+                    entry["note"] = ("left as programmed: free with the beads of the rewritten blocks before it "
+                                     "laid where they are now")
+                self.report.summary["freed_blocks"] += 1
+
+    def _detected_after(self, row: int) -> str | None:
+        """Why a collision found at ``row`` may not be one of the program as written: its move
+        starts from a block ncfix rewrote, or beads of rewritten blocks moved within its reach;
+        None when it was found as programmed (``--check`` finds it too)."""
+        r = self.rows
+        line = int(r.line[row])
+        before = self._moves(row, row + 1).w_start
+        programmed = r.programmed[row - 1:row] if row > 0 else (
+            None if self.prev_programmed is None else self.prev_programmed[None])
+        if programmed is not None and not _same(before, programmed)[0]:
+            previous = int(r.line[row - 1]) if row > 0 else None
+            where = f"line {previous}" if previous is not None else "the block before it"
+            return f"found after ncfix rewrote {where}: its move starts there"
+        moved = self._beads_moved_by.get(line)
+        if moved is not None:
+            lines = f"line {moved[0]}" if moved[0] == moved[1] else f"lines {moved[0]}-{moved[1]}"
+            return f"found after ncfix rewrote {lines}: their beads moved within its reach"
+        return None
 
     def _collision_entries(self, rows: np.ndarray, hits: MoveHits) -> dict[int, dict]:
-        """Report entries of colliding rows (hits: detection from row ``self.final`` on)."""
+        """Report entries of colliding rows (hits: detection from row ``self.final`` on;
+        ``collision_entry``): the move's poses are the detection's (``Detected.poses``)."""
+        from ncfix.collision.stage import collision_entry
+
         out = {}
+        ends = np.append(hits.first[1:], len(hits.C)) if hits.first is not None else None
         for row in rows:
             i = int(row) - self.final
             s = hits.sample[i]
-            bodies = [p.name for j, p in enumerate(self.checker.parts) if hits.part_hit[i, j]]
-            clearance = np.inf
-            if bodies:
-                per_part = self.checker.reference.part_clearances(hits.C[s], hits.R[s])
-                clearance = min(per_part[b] for b in bodies)
-            if hits.deposit_hit[i]:
-                bodies.append("deposit")
-                clearance = min(clearance, float(hits.deposit_clearance[i]))
-            out[int(row)] = {"line": int(self.rows.line[row]), "bodies": bodies,
-                             "penetration_mm": round(max(0.0, -float(clearance)), 4),
-                             "clearance_mm": round(float(clearance), 4)}
+            c, r = hits.C[s], hits.R[s]
+            if ends is not None:  # a fresh check of every row (REUSE_DETECTION off)
+                move_C, move_R = hits.C[hits.first[i]:ends[i]], hits.R[hits.first[i]:ends[i]]
+            else:
+                move_C, move_R = self.detected.poses[int(row)]
+                if self.rows.known_start[row]:  # its first pose is the sweep start: the block before's
+                    move_C, move_R = move_C[1:], move_R[1:]
+            at_end = bool(np.array_equal(move_C[-1], c) and np.array_equal(move_R[-1], r))
+            entry = collision_entry(self.checker, int(self.rows.line[row]), hits.part_hit[i],
+                                    bool(hits.deposit_hit[i]), float(hits.deposit_clearance[i]), c, r,
+                                    at_end, move_C, move_R)
+            after = self._detected_after(int(row))
+            if after is not None:
+                entry["detected"] = after
+                self.report.summary["found_after_changes"] += 1
+            out[int(row)] = entry
         return out
 
     def as_printed(self, rows: np.ndarray, words: np.ndarray) -> np.ndarray:
