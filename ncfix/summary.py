@@ -35,8 +35,8 @@ def print_summary(report: Report, verbose: bool = False, console: Console | None
                       f"({s.get('checked_samples', 0):,} poses checked; deposit: {s.get('deposit_rule')})")
         after = [e for e in report.collisions if e.get("detected")]
         if after:
-            console.print(f"  {plural(len(after), 'of them')} only after ncfix rewrote the blocks before "
-                          f"{'it' if len(after) == 1 else 'them'} (--check of the input does not see "
+            console.print(f"  {len(after):,} of them found after ncfix rewrote blocks before "
+                          f"{'it' if len(after) == 1 else 'them'} (--check of the input may not flag "
                           f"{'it' if len(after) == 1 else 'them'}): "
                           + "; ".join(f"line {e['line']}: {e['detected']}" for e in after[:3])
                           + (" …" if len(after) > 3 else ""))

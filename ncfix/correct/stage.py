@@ -206,9 +206,9 @@ class CorrectStage:
         self.retired_seen = 0  # store.retired when the cached results were found
         self.head_corners = _head_corners(checker)
         self._decimals: dict[bytes, dict[str, int]] = {}  # as_printed: a line's decimals per kind of word
-        # line -> (first, last) lines of the changed moves whose beads moved within its reach (``_forget``):
+        # line -> [(first, last)] lines of changed moves whose beads moved within its reach (``_forget``):
         # a collision found there was found after ncfix's own change (``_detected_after``).
-        self._beads_moved_by: dict[int, tuple[int, int]] = {}
+        self._beads_moved_by: dict[int, list[tuple[int, int]]] = {}
         report.summary.setdefault("freed_blocks", 0)
         report.summary.setdefault("found_after_changes", 0)
 
@@ -402,7 +402,9 @@ class CorrectStage:
         moved = first + np.nonzero(changed)[0]
         span = (int(self.rows.line[moved[0]]), int(self.rows.line[moved[-1]]))
         for line in self.rows.line[rows[near]].tolist():
-            self._beads_moved_by.setdefault(int(line), span)
+            spans = self._beads_moved_by.setdefault(int(line), [])
+            if span not in spans:
+                spans.append(span)
 
     def _solve(self, first: int, last: int, collided: dict[int, dict]) -> None:
         """Solve the episode (levels first..last), record its collisions, apply its words."""
@@ -457,23 +459,23 @@ class CorrectStage:
                                      "laid where they are now")
                 self.report.summary["freed_blocks"] += 1
 
-    def _detected_after(self, row: int) -> str | None:
-        """Why a collision found at ``row`` may not be one of the program as written: its move
-        starts from a block ncfix rewrote, or beads of rewritten blocks moved within its reach;
-        None when it was found as programmed (``--check`` finds it too)."""
+    def _detected_after(self, row: int, bodies: list[str]) -> str | None:
+        """Why a collision found at ``row`` may not be one of the program as written, or None:
+        its move starts from the block before as ncfix rewrote it (an earlier episode's last
+        level), or it hits only beads and beads of rewritten blocks moved within its reach (the
+        tip pivot moves a re-oriented block's programmed point, and its beads with it)."""
         r = self.rows
         line = int(r.line[row])
         before = self._moves(row, row + 1).w_start
         programmed = r.programmed[row - 1:row] if row > 0 else (
             None if self.prev_programmed is None else self.prev_programmed[None])
         if programmed is not None and not _same(before, programmed)[0]:
-            previous = int(r.line[row - 1]) if row > 0 else None
-            where = f"line {previous}" if previous is not None else "the block before it"
+            where = f"line {int(r.line[row - 1])}" if row > 0 else "the block before it"
             return f"found after ncfix rewrote {where}: its move starts there"
         moved = self._beads_moved_by.get(line)
-        if moved is not None:
-            lines = f"line {moved[0]}" if moved[0] == moved[1] else f"lines {moved[0]}-{moved[1]}"
-            return f"found after ncfix rewrote {lines}: their beads moved within its reach"
+        if moved and bodies == ["deposit"]:
+            lines = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in moved)
+            return f"found with the beads of lines {lines} as ncfix rewrote them, which moved within its reach"
         return None
 
     def _collision_entries(self, rows: np.ndarray, hits: MoveHits) -> dict[int, dict]:
@@ -497,7 +499,7 @@ class CorrectStage:
             entry = collision_entry(self.checker, int(self.rows.line[row]), hits.part_hit[i],
                                     bool(hits.deposit_hit[i]), float(hits.deposit_clearance[i]), c, r,
                                     at_end, move_C, move_R)
-            after = self._detected_after(int(row))
+            after = self._detected_after(int(row), entry["bodies"])
             if after is not None:
                 entry["detected"] = after
                 self.report.summary["found_after_changes"] += 1
