@@ -338,6 +338,7 @@ class CorrectStage:
             hits, _ = self.path.check(self._moves(a, b), self.store, 0, commit=False)
             self.samples += hits.samples
             self.checked_rows += b - a
+            self._remember(a, b, hits)  # the poses, for ``_forget``'s note of moved beads
             return hits
         d = self.detected
         if self.store.retired != self.retired_seen:  # the beads every row sees changed
@@ -386,8 +387,6 @@ class CorrectStage:
         """After an episode rewrote rows of first..end-1: forget the detection of the rows whose
         head came within their reach (``reach_mm``) of a bead of a changed move, as laid before
         or after the change (the changed moves themselves have other words now: checked again)."""
-        if not self.REUSE_DETECTION:
-            return
         after = self._moves(first, end)
         changed = ~(_same(before.w_start, after.w_start) & _same(before.w_end, after.w_end))
         if not changed.any() or not after.deposit[changed].any() or self.head_corners is None:
@@ -395,10 +394,15 @@ class CorrectStage:
         beads = np.concatenate([self.path.bead_points(_take(before, changed)),
                                 self.path.bead_points(_take(after, changed))])
         d = self.detected
-        rows = end - 1 + np.nonzero(d.valid[end - 1:])[0]  # the rows before become final now
-        near = near_beads(self.checker, d.lo[rows], d.hi[rows], [d.poses[r] for r in rows],
-                          reach_mm(self.checker, d.margin[rows]), beads)
-        d.valid[rows[near]] = False
+        rows = end - 1 + np.arange(len(d.valid) - (end - 1))  # the rows before become final now
+        poses = [d.poses[r] for r in rows]
+        known = np.array([p is not None for p in poses], dtype=bool)
+        rows, poses = rows[known], [p for p in poses if p is not None]
+        if not len(rows):
+            return
+        near = near_beads(self.checker, d.lo[rows], d.hi[rows], poses, reach_mm(self.checker, d.margin[rows]), beads)
+        if self.REUSE_DETECTION:
+            d.valid[rows[near]] = False
         moved = first + np.nonzero(changed)[0]
         span = (int(self.rows.line[moved[0]]), int(self.rows.line[moved[-1]]))
         for line in self.rows.line[rows[near]].tolist():
