@@ -52,18 +52,36 @@ class DepthProbe:
         the field at its nearest cell less half a cell diagonal, 0 when no point is inside."""
         grid = self.grids[k]
         field = self.inside_mm(k)
-        shape = np.array(field.shape)
-        lo = grid.origin_mm - 0.5 * grid.pitch_mm
-        hi = lo + shape * grid.pitch_mm
-        best = 0.0
-        for c, r in zip(np.asarray(C, dtype=np.float64).reshape(-1, 3), np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)):
-            world = self.points @ r.T + c
-            inside = ((world >= lo) & (world < hi)).all(axis=1)
-            if not inside.any():
-                continue
-            idx = np.clip(np.round((world[inside] - grid.origin_mm) / grid.pitch_mm).astype(np.int64), 0, shape - 1)
-            best = max(best, float(field[idx[:, 0], idx[:, 1], idx[:, 2]].max()))
+        C = np.ascontiguousarray(C, dtype=np.float64).reshape(-1, 3)
+        R = np.ascontiguousarray(R, dtype=np.float64).reshape(-1, 3, 3)
+        best = _deepest(self.points, C, R, field, np.asarray(grid.origin_mm, dtype=np.float64), float(grid.pitch_mm))
         return max(0.0, best - 0.5 * np.sqrt(3.0) * grid.pitch_mm) if best > 0 else 0.0
+
+
+def _deepest(points, C, R, field, origin, pitch):  # pragma: no cover - compiled
+    """The largest ``field`` value at the nearest cell of the points (p, 3) placed at each pose
+    (C (n, 3), R (n, 3, 3): world = C + R @ p); points outside the grid count 0."""
+    nx, ny, nz = field.shape
+    best = 0.0
+    for i in range(C.shape[0]):
+        for j in range(points.shape[0]):
+            px, py, pz = points[j, 0], points[j, 1], points[j, 2]
+            a = int(np.floor((C[i, 0] + R[i, 0, 0] * px + R[i, 0, 1] * py + R[i, 0, 2] * pz - origin[0]) / pitch + 0.5))
+            b = int(np.floor((C[i, 1] + R[i, 1, 0] * px + R[i, 1, 1] * py + R[i, 1, 2] * pz - origin[1]) / pitch + 0.5))
+            c = int(np.floor((C[i, 2] + R[i, 2, 0] * px + R[i, 2, 1] * py + R[i, 2, 2] * pz - origin[2]) / pitch + 0.5))
+            if 0 <= a < nx and 0 <= b < ny and 0 <= c < nz:
+                value = field[a, b, c]
+                if value > best:
+                    best = value
+    return best
+
+
+try:
+    from numba import njit as _njit
+
+    _deepest = _njit(cache=True, nogil=True)(_deepest)
+except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
+    pass
 
 
 def move_poses(C: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
