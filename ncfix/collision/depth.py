@@ -3,7 +3,7 @@
 The exact reference decides whether a pose collides; how far is not well defined for bodies
 that are not convex. ncfix reports the depth of the head in the part: the largest distance from
 a point of the head's surface inside the part to the part's surface, over the poses of the move.
-A head that passes through a 12 mm mold wall reports about 6 mm (half the wall) wherever its
+A head that passes through a 10 mm wall reports about 5 mm (half the wall) wherever its
 ends are, not the clearance of one pose near the exit.
 
 Each part's distance grid (``grid``) marks the cells that may hold part material; the distance
