@@ -96,9 +96,9 @@ def _unresolved(report: Report) -> str:
     rows = report.unresolved
     if not rows:
         return "<section><h2>Unresolved blocks</h2><p>None: every colliding block was fixed.</p></section>"
-    head = ("line", "bodies hit", "penetration mm", "why it could not be fixed")
-    body = [(_line_link(report, e.get("line")), _bodies(e), _num(e.get("penetration_mm"), 3),
-             escape(str(e.get("reason") or "not corrected")))
+    head = ("line", "bodies hit", "where", "penetration mm", "why it could not be fixed")
+    body = [(_line_link(report, e.get("line")), _bodies(e), escape(str(e.get("where") or "–")),
+             _num(e.get("penetration_mm"), 3), escape(str(e.get("reason") or "not corrected")))
             for e in rows[:TABLE_ROWS]]
     reasons: dict[str, int] = {}
     for e in rows:
@@ -108,7 +108,7 @@ def _unresolved(report: Report) -> str:
     return (f"<section><h2 class=\"bad\">Unresolved blocks ({len(rows):,})</h2>"
             "<p>These blocks still collide: they are left as programmed in the output. Change the toolpath "
             "in the CAM system, or allow more tilt (--max-tilt) or more change per block (--max-step).</p>"
-            f"<ul class=\"reasons\">{why}</ul>" + _table(head, body, len(rows), (2,)) + "</section>")
+            f"<ul class=\"reasons\">{why}</ul>" + _table(head, body, len(rows), (3,)) + "</section>")
 
 
 def _changes(report: Report) -> str:
@@ -136,15 +136,32 @@ def _collisions(report: Report) -> str:
     title = "Colliding blocks" if report.options.check else "Colliding blocks as programmed"
     if not rows:
         return f"<section><h2>{title}</h2><p>No block collides.</p></section>"
-    head = ("line", "bodies hit", "penetration mm", "clearance mm")
-    body = [(_line_link(report, e.get("line")), _bodies(e), _num(e.get("penetration_mm"), 3),
-             _num(e.get("clearance_mm"), 3)) for e in rows[:TABLE_ROWS]]
-    table = _table(head, body, len(rows), (2, 3))
+    head = ("line", "bodies hit", "where", "penetration mm", "clearance mm")
+    if not report.options.check:
+        head += ("outcome",)
+    body = [(_line_link(report, e.get("line")), _bodies(e), escape(str(e.get("where") or "–")),
+             _num(e.get("penetration_mm"), 3), _num(e.get("clearance_mm"), 3))
+            + (() if report.options.check else (escape(_outcome(e)),)) for e in rows[:TABLE_ROWS]]
+    table = _table(head, body, len(rows), (3, 4))
+    where = ("<p><b>where</b>: <b>end</b> = the head collides at the block's end point; <b>sweep</b> = along "
+             "the move from the block before, its end point being free. The clearance is at that pose; the "
+             "penetration is the deepest the head goes into a body along the move.</p>")
     if report.options.check:
-        return f"<section><h2 class=\"bad\">{title} ({len(rows):,})</h2>{table}</section>"
+        return f"<section><h2 class=\"bad\">{title} ({len(rows):,})</h2>{where}{table}</section>"
     return (f"<section><details><summary><h2>{title} ({len(rows):,})</h2></summary>"
-            "<p>Every block that collided before any change (the fixed ones are in the table above).</p>"
-            f"{table}</details></section>")
+            "<p>Every block that collided before any change (the fixed ones are in the table above). "
+            "<b>outcome</b>: tilted; freed (left as programmed, free once the blocks before it were rewritten); "
+            "unresolved.</p>"
+            f"{where}{table}</details></section>")
+
+
+def _outcome(entry: dict[str, Any]) -> str:
+    text = str(entry.get("outcome") or "–")
+    if entry.get("note"):
+        text += f": {entry['note']}"
+    if entry.get("detected"):
+        text += f" ({entry['detected']})"
+    return text
 
 
 def _plots(report: Report) -> str:

@@ -151,9 +151,11 @@ class Report:
     # {"line", "before", "after", "reason": "collision"|"blend", "tilt_deg", "step_deg", "bodies",
     #  "clearance_before_mm", "clearance_after_mm", "point": [x, y, z] (programmed point after)}
     changes: list[dict[str, Any]] = field(default_factory=list)
-    # {"line", "bodies", "penetration_mm", "reason": why it could not be fixed}
+    # {"line", "bodies", "penetration_mm", "where", "reason": why it could not be fixed}
     unresolved: list[dict[str, Any]] = field(default_factory=list)
-    # {"line", "bodies", "penetration_mm", "clearance_mm"}: as found before any change
+    # {"line", "bodies", "penetration_mm", "clearance_mm", "where": "end"|"sweep"}: as found before any
+    # change; in fix mode also "outcome": "tilted"|"freed"|"unresolved" ("note" on a freed one) and,
+    # on one found only after ncfix rewrote the blocks before it, "detected" (why)
     collisions: list[dict[str, Any]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     details: list[str] = field(default_factory=list)  # shown with -v (e.g. the head model's counts)
@@ -311,7 +313,10 @@ class Report:
                     f"programmed ({fixed} of {found} fixed): exit 1")
         if not found and not self.changes:
             return "no colliding block: the program is written unchanged: exit 0"
-        return (f"all {plural(found, 'colliding block')} fixed: {plural(tilted, 'block')} tilted, "
+        freed = int(s.get("freed_blocks", 0))
+        left = (f", {plural(freed, 'block')} freed by the change of the blocks before {'it' if freed == 1 else 'them'}"
+                " (left as programmed)") if freed else ""
+        return (f"all {plural(found, 'colliding block')} fixed: {plural(tilted, 'block')} tilted{left}, "
                 f"{plural(blended, 'ramp block')} blended; the output has no detected collision: exit 0")
 
     def exit_meaning(self) -> str:

@@ -232,7 +232,7 @@ def test_cli_unresolved_blocks_exit_1_with_output_written_and_listed(program, tm
     assert main([str(program), "-o", str(out), "--head", "h.stl"]) == 1
     assert out.read_bytes() == PROGRAM
     err = capsys.readouterr().err
-    assert re.search(r"\b6\s+part:mold.stl\s+0.500\s+no free orientation within --max-tilt 30°", err)
+    assert re.search(r"\b6\s+part:mold.stl\s+–\s+0.500\s+no free orientation within --max-tilt 30°", err)
     assert err.rstrip().endswith("1 colliding block could not be fixed and is left as programmed (0 of 1 fixed): exit 1")
 
 

@@ -499,7 +499,7 @@ def test_bathtub_program_end_to_end_flags_every_colliding_block(checker, meshes)
           f"{len(flagged)} flagged ({len(extra)} more: their sweeps from the previous point)")
     entry = report.collisions[0]
     assert entry["bodies"] == ["part:recreated_mold.stl"]
-    assert set(entry) == {"line", "bodies", "penetration_mm", "clearance_mm"}
+    assert set(entry) == {"line", "bodies", "penetration_mm", "clearance_mm", "where"}
     assert report.summary["colliding_blocks_before"] == len(flagged)
 
 

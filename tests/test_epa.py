@@ -11,7 +11,8 @@ import pytest
 import trimesh
 
 from ncfix.correct.decompose import cache_key, decompose
-from ncfix.correct.epa import EpaModel, _angle_deg, _boxes_met, _convex, _pieces_met, _tilt_axis, _turned
+from ncfix.correct.epa import (EpaModel, _angle_deg, _boxes_met, _clip_hull, _convex, _pieces_met, _tilt_axis,
+                              _turned)
 from ncfix.geometry.frames import angle_between_deg, axis_rotation, minimal_rotation, rotation_from_z
 from ncfix.reference import ExactReference
 
@@ -414,3 +415,56 @@ def test_bead_exit_vectors_match_coal_epa():
     assert 100 < touch.sum() < len(near)
     assert ((np.linalg.norm(mine, axis=1) > 0) == touch).all()
     assert np.abs(mine - theirs).max() < 1e-4
+
+
+def _hull_signed_distance(hull: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
+    """Exact signed distance (negative inside) from points (n, 3) to a convex hull: inside, the
+    nearest face plane; outside, the distance to its triangles (coal's BVH of the triangles, not
+    its convex shapes)."""
+    from ncfix.reference import _bvh
+
+    planes = points @ hull.face_normals.T - np.einsum("ij,ij->i", hull.face_normals, hull.triangles[:, 0])
+    out = planes.max(axis=1)
+    bvh, probe = _bvh(hull), coal.Sphere(1e-9)
+    for i in np.flatnonzero(out > 0):
+        out[i] = coal.distance(probe, coal.Transform3s(np.eye(3), points[i]), bvh, coal.Transform3s(),
+                               coal.DistanceRequest(), coal.DistanceResult()) + 1e-9
+    return out
+
+
+@pytest.mark.parametrize("segments, pointed", [(128, False), (512, False), (1024, False), (512, True), (1024, True)])
+def test_hull_model_of_a_finely_revolved_head_is_exact_or_larger(segments, pointed):
+    """coal refuses a convex shape with a vertex of more than 255 neighbours: the triangles of a
+    revolved head's hull fan its discs (the head of 128 segments cut at the tip allowance: 256
+    points in one cap) and a pointed cone's apex has one edge per segment. The hull model
+    builds for all of them: where the hull's true edges allow, the same shape (every sphere
+    touches it exactly when it touches the hull, at the same EPA depth); at a fine apex, a
+    shape that holds the hull and is at most 0.05 mm larger."""
+    from heads import revolved_head
+
+    head = revolved_head(segments, "fan", pointed=pointed)
+    model = EpaModel(head, [], bead_radius_mm=1.0, tip_allowance_mm=1.0)
+    rng = np.random.default_rng(segments)
+    request = coal.CollisionRequest()
+    request.enable_contact = True
+    for shape, mesh in ((model._head, head.convex_hull), (model._bead_head, _clip_hull(head.convex_hull, 1.0))):
+        outer = pointed and shape is model._head  # only the apex has too many true edges
+        centres = rng.uniform(mesh.bounds[0] - 2.0, mesh.bounds[1] + 2.0, (400, 3))
+        centres[:100, 2] = rng.uniform(-1.5, 2.0, 100)  # around the tip, the apex and the cut
+        radius = 1.0
+        signed = _hull_signed_distance(mesh, centres)
+        sure = np.abs(signed - radius) > (0.05 if outer else 1e-6)
+        touching = np.zeros(len(centres), dtype=bool)
+        depth = np.zeros(len(centres))
+        for i, c in enumerate(centres):
+            result = coal.CollisionResult()
+            touching[i] = coal.collide(shape, coal.Transform3s(), coal.Sphere(radius),
+                                       coal.Transform3s(np.eye(3), c), request, result) > 0
+            if touching[i]:
+                depth[i] = -result.getContact(0).penetration_depth
+        assert 50 < touching.sum() < 350
+        assert (touching[signed < radius]).all()  # never smaller than the hull
+        assert np.array_equal(touching[sure], (signed < radius)[sure])
+        if not outer:
+            inside = touching & sure
+            assert np.abs(depth[inside] - (radius - signed[inside])).max() < 1e-3

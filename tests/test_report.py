@@ -194,7 +194,7 @@ def test_fix_summary_lists_changes_unresolved_blocks_with_reasons_and_the_verdic
     text = summary_text(report)
     assert "3 colliding blocks found" in text
     assert "4 blocks changed: 2 tilted off a collision, 2 blended into ramps (max tilt 12.50°, max step 2.00°" in text
-    assert re.search(r"40\s+part:mold.stl\s+0.800\s+no free orientation within --max-tilt 30°", text)
+    assert re.search(r"40\s+part:mold.stl\s+–\s+0.800\s+no free orientation within --max-tilt 30°", text)
     assert text.rstrip().endswith(
         "1 colliding block could not be fixed and is left as programmed (2 of 3 fixed): exit 1")
 
@@ -211,11 +211,11 @@ def test_notes_are_shown_without_verbose_details_only_with():
 
 def test_check_summary_keeps_the_collision_table():
     report = make_report(CHECK, colliding_blocks_before=25)
-    report.collisions = [{"line": n, "bodies": ["deposit"], "penetration_mm": 0.5, "clearance_mm": -0.5}
-                         for n in range(100, 125)]
+    report.collisions = [{"line": n, "bodies": ["deposit"], "penetration_mm": 0.5, "clearance_mm": -0.5,
+                          "where": "end"} for n in range(100, 125)]
     text = summary_text(report)
-    assert re.search(r"line\s+bodies\s+penetration mm\s+clearance mm", text)
-    assert re.search(r"119\s+deposit\s+0.500\s+-0.500", text) and "120  deposit" not in text
+    assert re.search(r"line\s+bodies\s+where\s+penetration mm\s+clearance mm", text)
+    assert re.search(r"119\s+deposit\s+end\s+0.500\s+-0.500", text) and "120  deposit" not in text
     assert "… 5 more colliding blocks (-v or --report lists all)" in text
     assert re.search(r"124\s+deposit", summary_text(report, verbose=True))
 

@@ -283,6 +283,14 @@ class Checker:
             self.near_head = cached_near_surface(self._head_triangles_clipped,
                                                  self.bead_radius_mm + self.clearance_mm + 1.5 * self.pitch_mm)
 
+    def depth_probe(self):
+        """The report's penetration estimates (``depth.DepthProbe``), made on first use."""
+        if getattr(self, "_depth_probe", None) is None:
+            from ncfix.collision.depth import DepthProbe
+
+            self._depth_probe = DepthProbe(self.head, [p.grid for p in self.parts], max(2.0 * self.pitch_mm, 2.0))
+        return self._depth_probe
+
     # -- the sphere-tree test ----------------------------------------------------------------
     @property
     def torch(self):

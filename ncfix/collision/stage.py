@@ -93,24 +93,49 @@ def check_placement(path: PathChecker, motion: MotionRows, placed_parts: list, c
     return []
 
 
+def collision_entry(checker: Checker, line: int, part_hit: np.ndarray, deposit_hit: bool, deposit_clearance: float,
+                    c: np.ndarray, r: np.ndarray, at_end: bool, move_C: np.ndarray, move_R: np.ndarray) -> dict:
+    """The report entry of one colliding move: the bodies hit, ``where`` it collides ("end": its
+    end pose; "sweep": a pose along the move from the block before, its end pose being free),
+    the exact clearance at the deciding pose (c, r: the end pose, or the last colliding pose of
+    the sweep) and the penetration: the deepest the head goes into a body hit, over the poses
+    of the move (``move_C`` (m, 3), ``move_R`` (m, 3, 3); ``depth.DepthProbe`` for the parts,
+    the deepest bead for the beads, never less than the deciding pose's exact overlap)."""
+    from ncfix.collision.depth import move_poses
+
+    hit = [j for j, p in enumerate(checker.parts) if part_hit[j]]
+    bodies = [checker.parts[j].name for j in hit]
+    clearance = np.inf
+    if bodies:
+        per_part = checker.reference.part_clearances(c, r)
+        clearance = min(per_part[b] for b in bodies)
+    if deposit_hit:
+        bodies.append("deposit")
+        clearance = min(clearance, float(deposit_clearance))
+    penetration = max(0.0, -clearance)
+    if hit:
+        probe = checker.depth_probe()
+        poses = move_poses(move_C, move_R)
+        penetration = max([penetration] + [probe.depth_mm(j, *poses) for j in hit])
+    where = "end" if at_end and clearance < checker.clearance_mm else "sweep"
+    return {"line": int(line), "bodies": bodies, "penetration_mm": round(penetration, 4),
+            "clearance_mm": round(float(clearance), 4), "where": where}
+
+
 def record_collisions(report, checker: Checker, lines: np.ndarray, hits: MoveHits, *, resolved: bool) -> None:
-    """One report entry per colliding move: bodies hit, exact clearance of its deciding sample."""
+    """One report entry per colliding move (``collision_entry``)."""
+    ends = np.append(hits.first[1:], len(hits.C)) if hits.first is not None else None
     for r in np.nonzero(hits.any)[0]:
-        bodies = [p.name for j, p in enumerate(checker.parts) if hits.part_hit[r, j]]
-        clearance = np.inf
         s = hits.sample[r]
-        if bodies:
-            per_part = checker.reference.part_clearances(hits.C[s], hits.R[s])
-            clearance = min(per_part[b] for b in bodies)
-        if hits.deposit_hit[r]:
-            bodies.append("deposit")
-            clearance = min(clearance, float(hits.deposit_clearance[r]))
-        penetration = round(max(0.0, -clearance), 4)
+        lo, hi = (hits.first[r], ends[r]) if ends is not None else (s, s + 1)
+        entry = collision_entry(checker, lines[r], hits.part_hit[r], bool(hits.deposit_hit[r]),
+                                float(hits.deposit_clearance[r]), hits.C[s], hits.R[s], s == hi - 1,
+                                hits.C[lo:hi], hits.R[lo:hi])
         report.summary["colliding_blocks_before"] += 1
-        report.collisions.append({"line": int(lines[r]), "bodies": bodies, "penetration_mm": penetration,
-                                  "clearance_mm": round(float(clearance), 4)})
+        report.collisions.append(entry)
         if not resolved:
-            report.unresolved.append({"line": int(lines[r]), "bodies": bodies, "penetration_mm": penetration,
+            report.unresolved.append({"line": entry["line"], "bodies": entry["bodies"],
+                                      "penetration_mm": entry["penetration_mm"], "where": entry["where"],
                                       "reason": "collides as programmed"})
             report.summary["unresolved_blocks"] += 1
 

@@ -332,13 +332,89 @@ class EpaModel:
 # ---- helpers ------------------------------------------------------------------------------
 
 
-def _convex(mesh: trimesh.Trimesh) -> coal.Convex:
-    """A coal convex shape from a convex trimesh (its points and triangles)."""
-    points = coal.StdVec_Vec3s()
-    points.extend(list(np.asarray(mesh.vertices, dtype=np.float64)))
-    triangles = coal.StdVec_Triangle()
-    triangles.extend([coal.Triangle(int(a), int(b), int(c)) for a, b, c in mesh.faces])
-    return coal.Convex(points, triangles)
+def _convex(mesh: trimesh.Trimesh) -> coal.ConvexBase:
+    """A coal convex shape from a convex trimesh (its points and triangles), for any mesh.
+
+    coal keeps each vertex's neighbours (its GJK support search climbs along them) in lists of
+    at most ``_COAL_MAX_NEIGHBOURS``, and refuses a shape with a vertex of more. The triangles
+    of a hull can have such a vertex where the hull does not: qhull fans a flat cap of n
+    points from one of them (a revolved head of 128 segments cut at the tip allowance: a cap of
+    256 points). Then the same points are given to coal's own hull, whose neighbours are the
+    polytope's true edges: the same shape. Where even a true vertex has more edges (the apex of
+    a cone of 256 or more segments), the shape is ``_outer_polytope``: a polytope holding the
+    hull, off by hundredths of a millimetre, only ever larger (so the hull model errs toward
+    "collides")."""
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    if _max_valence(faces, len(vertices)) <= _COAL_MAX_NEIGHBOURS:
+        points = coal.StdVec_Vec3s()
+        points.extend(list(vertices))
+        triangles = coal.StdVec_Triangle()
+        triangles.extend([coal.Triangle(int(a), int(b), int(c)) for a, b, c in faces])
+        return coal.Convex(points, triangles)
+    shape = _coal_hull(vertices)
+    if shape is None:
+        shape = _coal_hull(_outer_polytope(vertices))
+    if shape is None:  # pragma: no cover - _outer_polytope bounds the valence well below the limit
+        raise ValueError(f"cannot build a convex shape of {len(vertices)} points for the hull model")
+    return shape
+
+
+# coal stores a vertex's neighbour count in one byte (``Convex::fillNeighbors``, "Too many neighbors").
+_COAL_MAX_NEIGHBOURS = 255
+# ``_outer_polytope``: face normals are grouped by the nearest of this many directions (a Fibonacci
+# lattice, about 4.5° apart): a vertex meets at most a few dozen groups' planes.
+_OUTER_DIRECTIONS = 2000
+
+
+def _max_valence(faces: np.ndarray, vertices: int) -> int:
+    """The most edges any vertex of the triangles (f, 3) has."""
+    if len(faces) == 0:
+        return 0
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    edges = np.unique(edges, axis=0)
+    return int(np.bincount(edges.ravel(), minlength=vertices).max())
+
+
+def _coal_hull(points: np.ndarray) -> coal.ConvexBase | None:
+    """coal's hull of the points (qhull, facets not triangulated: neighbours along the true
+    edges), or None when a vertex still has too many of them."""
+    vec = coal.StdVec_Vec3s()
+    vec.extend(list(np.asarray(points, dtype=np.float64)))
+    try:
+        return coal.ConvexBase.convexHull(vec, False, "")
+    except RuntimeError as error:
+        if "Too many neighbors" in str(error):
+            return None
+        raise
+
+
+def _outer_polytope(points: np.ndarray) -> np.ndarray:
+    """(m, 3) vertices of a polytope that holds the hull of the points (n, 3) and has no vertex
+    of many edges: the hull's face normals are grouped by the nearest of ``_OUTER_DIRECTIONS``
+    lattice directions, each group becomes one plane along its area-weighted mean normal at the
+    points' support in that direction (so it holds every point), with the six axis planes; the
+    polytope is their intersection. The planes around a vertex of many faces (a fine cone's apex)
+    become a few dozen."""
+    from scipy.spatial import HalfspaceIntersection
+
+    points = np.asarray(points, dtype=np.float64)
+    hull = trimesh.convex.convex_hull(points)
+    normals, areas = np.asarray(hull.face_normals), np.asarray(hull.area_faces)
+    i = np.arange(_OUTER_DIRECTIONS) + 0.5
+    polar, azimuth = np.arccos(1.0 - 2.0 * i / _OUTER_DIRECTIONS), np.pi * (1.0 + 5.0 ** 0.5) * i
+    lattice = np.column_stack([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar)])
+    group = np.argmax(normals @ lattice.T, axis=1)
+    sums = np.zeros((_OUTER_DIRECTIONS, 3))
+    np.add.at(sums, group, areas[:, None] * normals)
+    sums = sums[np.linalg.norm(sums, axis=1) > 0]
+    directions = np.vstack([sums / np.linalg.norm(sums, axis=1)[:, None], np.eye(3), -np.eye(3)])
+    offsets = (points @ directions.T).max(axis=0)
+    centre = np.asarray(hull.centroid, dtype=np.float64)
+    # Each plane pushed out by a rounding's width, so that the intersection holds the points.
+    slack = 1e-9 * max(1.0, float(np.abs(points).max()))
+    planes = np.column_stack([directions, -(offsets + slack)])
+    return np.asarray(HalfspaceIntersection(planes, centre).intersections, dtype=np.float64)
 
 
 def _clip_hull(hull: trimesh.Trimesh, height_mm: float) -> trimesh.Trimesh:

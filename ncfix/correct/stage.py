@@ -206,6 +206,11 @@ class CorrectStage:
         self.retired_seen = 0  # store.retired when the cached results were found
         self.head_corners = _head_corners(checker)
         self._decimals: dict[bytes, dict[str, int]] = {}  # as_printed: a line's decimals per kind of word
+        # line -> [(first, last)] lines of changed moves whose beads moved within its reach (``_forget``):
+        # a collision found there was found after ncfix's own change (``_detected_after``).
+        self._beads_moved_by: dict[int, list[tuple[int, int]]] = {}
+        report.summary.setdefault("freed_blocks", 0)
+        report.summary.setdefault("found_after_changes", 0)
 
     # -- stage protocol ------------------------------------------------------------------------
     def push(self, chunk):
@@ -249,6 +254,9 @@ class CorrectStage:
             self.detected = self.detected.drop(count)
             self.final -= count
             self.first_serial += 1
+        if self._beads_moved_by:  # lines already written cannot collide again
+            first = int(self.rows.line[0]) if len(self.rows) else None
+            self._beads_moved_by = {k: v for k, v in self._beads_moved_by.items() if first is not None and k >= first}
         return out
 
     def _moves(self, a: int, b: int) -> Moves:
@@ -330,6 +338,7 @@ class CorrectStage:
             hits, _ = self.path.check(self._moves(a, b), self.store, 0, commit=False)
             self.samples += hits.samples
             self.checked_rows += b - a
+            self._remember(a, b, hits)  # the poses, for ``_forget``'s note of moved beads
             return hits
         d = self.detected
         if self.store.retired != self.retired_seen:  # the beads every row sees changed
@@ -378,8 +387,6 @@ class CorrectStage:
         """After an episode rewrote rows of first..end-1: forget the detection of the rows whose
         head came within their reach (``reach_mm``) of a bead of a changed move, as laid before
         or after the change (the changed moves themselves have other words now: checked again)."""
-        if not self.REUSE_DETECTION:
-            return
         after = self._moves(first, end)
         changed = ~(_same(before.w_start, after.w_start) & _same(before.w_end, after.w_end))
         if not changed.any() or not after.deposit[changed].any() or self.head_corners is None:
@@ -387,10 +394,21 @@ class CorrectStage:
         beads = np.concatenate([self.path.bead_points(_take(before, changed)),
                                 self.path.bead_points(_take(after, changed))])
         d = self.detected
-        rows = end - 1 + np.nonzero(d.valid[end - 1:])[0]  # the rows before become final now
-        near = near_beads(self.checker, d.lo[rows], d.hi[rows], [d.poses[r] for r in rows],
-                          reach_mm(self.checker, d.margin[rows]), beads)
-        d.valid[rows[near]] = False
+        rows = end - 1 + np.arange(len(d.valid) - (end - 1))  # the rows before become final now
+        poses = [d.poses[r] for r in rows]
+        known = np.array([p is not None for p in poses], dtype=bool)
+        rows, poses = rows[known], [p for p in poses if p is not None]
+        if not len(rows):
+            return
+        near = near_beads(self.checker, d.lo[rows], d.hi[rows], poses, reach_mm(self.checker, d.margin[rows]), beads)
+        if self.REUSE_DETECTION:
+            d.valid[rows[near]] = False
+        moved = first + np.nonzero(changed)[0]
+        span = (int(self.rows.line[moved[0]]), int(self.rows.line[moved[-1]]))
+        for line in self.rows.line[rows[near]].tolist():
+            spans = self._beads_moved_by.setdefault(int(line), [])
+            if span not in spans:
+                spans.append(span)
 
     def _solve(self, first: int, last: int, collided: dict[int, dict]) -> None:
         """Solve the episode (levels first..last), record its collisions, apply its words."""
@@ -414,31 +432,82 @@ class CorrectStage:
             if row in unresolved:
                 s["unresolved_blocks"] += 1
                 self.report.unresolved.append({"line": entry["line"], "bodies": entry["bodies"],
-                                               "penetration_mm": entry["penetration_mm"],
+                                               "penetration_mm": entry["penetration_mm"], "where": entry["where"],
                                                "reason": solution.reasons.get(row, "no free orientation found")})
         for row in sorted(unresolved - set(collided)):  # a move that collides only as rewritten
             s["unresolved_blocks"] += 1
             self.report.unresolved.append({"line": int(self.rows.line[row]), "bodies": [], "penetration_mm": None,
                                            "reason": solution.reasons.get(row, "collides after the blocks around it")})
         self._apply(first, last, solution.words, collided)
+        self._outcomes(collided, unresolved)
+
+    def _outcomes(self, collided: dict[int, dict], unresolved: set) -> None:
+        """Say in each collision entry of an episode what became of it (``outcome``): "tilted",
+        "unresolved", or "freed": left as programmed, its move is free once the blocks before it
+        are rewritten (``note`` says how); the summary counts the freed (``freed_blocks``)."""
+        r = self.rows
+        for row, entry in collided.items():
+            if row in unresolved:
+                entry["outcome"] = "unresolved"
+            elif not _same(r.words[row:row + 1], r.programmed[row:row + 1])[0]:
+                entry["outcome"] = "tilted"
+            else:
+                entry["outcome"] = "freed"
+                before = self._moves(row, row + 1).w_start
+                programmed = r.programmed[row - 1:row] if row > 0 else self.prev_programmed
+                if row > 0 and programmed is not None and not _same(before, np.reshape(programmed, (1, -1)))[0]:
+                    entry["note"] = (f"left as programmed: its move now starts from line {int(r.line[row - 1])} "
+                                     "as rewritten, and is free")
+                else:
+                    entry["note"] = ("left as programmed: free with the beads of the rewritten blocks before it "
+                                     "laid where they are now")
+                self.report.summary["freed_blocks"] += 1
+
+    def _detected_after(self, row: int, bodies: list[str]) -> str | None:
+        """Why a collision found at ``row`` may not be one of the program as written, or None:
+        its move starts from the block before as ncfix rewrote it (an earlier episode's last
+        level), or it hits only beads and beads of rewritten blocks moved within its reach (the
+        tip pivot moves a re-oriented block's programmed point, and its beads with it)."""
+        r = self.rows
+        line = int(r.line[row])
+        before = self._moves(row, row + 1).w_start
+        programmed = r.programmed[row - 1:row] if row > 0 else (
+            None if self.prev_programmed is None else self.prev_programmed[None])
+        if programmed is not None and not _same(before, programmed)[0]:
+            where = f"line {int(r.line[row - 1])}" if row > 0 else "the block before it"
+            return f"found after ncfix rewrote {where}: its move starts there"
+        moved = self._beads_moved_by.get(line)
+        if moved and bodies == ["deposit"]:
+            lines = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in moved)
+            return f"found with the beads of lines {lines} as ncfix rewrote them, which moved within its reach"
+        return None
 
     def _collision_entries(self, rows: np.ndarray, hits: MoveHits) -> dict[int, dict]:
-        """Report entries of colliding rows (hits: detection from row ``self.final`` on)."""
+        """Report entries of colliding rows (hits: detection from row ``self.final`` on;
+        ``collision_entry``): the move's poses are the detection's (``Detected.poses``)."""
+        from ncfix.collision.stage import collision_entry
+
         out = {}
+        ends = np.append(hits.first[1:], len(hits.C)) if hits.first is not None else None
         for row in rows:
             i = int(row) - self.final
             s = hits.sample[i]
-            bodies = [p.name for j, p in enumerate(self.checker.parts) if hits.part_hit[i, j]]
-            clearance = np.inf
-            if bodies:
-                per_part = self.checker.reference.part_clearances(hits.C[s], hits.R[s])
-                clearance = min(per_part[b] for b in bodies)
-            if hits.deposit_hit[i]:
-                bodies.append("deposit")
-                clearance = min(clearance, float(hits.deposit_clearance[i]))
-            out[int(row)] = {"line": int(self.rows.line[row]), "bodies": bodies,
-                             "penetration_mm": round(max(0.0, -float(clearance)), 4),
-                             "clearance_mm": round(float(clearance), 4)}
+            c, r = hits.C[s], hits.R[s]
+            if ends is not None:  # a fresh check of every row (REUSE_DETECTION off)
+                move_C, move_R = hits.C[hits.first[i]:ends[i]], hits.R[hits.first[i]:ends[i]]
+            else:
+                move_C, move_R = self.detected.poses[int(row)]
+                if self.rows.known_start[row]:  # its first pose is the sweep start: the block before's
+                    move_C, move_R = move_C[1:], move_R[1:]
+            at_end = bool(np.array_equal(move_C[-1], c) and np.array_equal(move_R[-1], r))
+            entry = collision_entry(self.checker, int(self.rows.line[row]), hits.part_hit[i],
+                                    bool(hits.deposit_hit[i]), float(hits.deposit_clearance[i]), c, r,
+                                    at_end, move_C, move_R)
+            after = self._detected_after(int(row), entry["bodies"])
+            if after is not None:
+                entry["detected"] = after
+                self.report.summary["found_after_changes"] += 1
+            out[int(row)] = entry
         return out
 
     def as_printed(self, rows: np.ndarray, words: np.ndarray) -> np.ndarray:
@@ -494,8 +563,10 @@ class CorrectStage:
         P0, N0, R0 = self.path.forward(r.programmed[rows], r.tcp[rows])
         P1, N1, R1 = self.path.forward(words, r.tcp[rows])
         tilt = angle_between_deg(N1, N0)
-        prev = np.vstack([self.path.forward(self._moves(first, first + 1).w_start,
-                                            r.tcp[rows[:1]])[1], N1[:-1]])
+        start = self._moves(first, first + 1).w_start
+        # The program's first motion block has no block before it: its step is 0.
+        before = self.path.forward(start, r.tcp[rows[:1]])[1] if np.isfinite(start).all() else N1[:1]
+        prev = np.vstack([before, N1[:-1]])
         step = angle_between_deg(N1, prev)
         ref = self.checker.reference
         for i in np.nonzero(changed)[0]:
