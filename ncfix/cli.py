@@ -227,8 +227,7 @@ def _options(args: argparse.Namespace) -> Options:
     if beside:
         confine_outputs(config, path, cli)  # someone else's file, maybe: it writes only in its folder
     options = build_options(config, cli, where=str(path))
-    if path.is_file() and not options.quiet:
-        _stderr(f"ncfix: using config {path}")
+    args.config_read = path if path.is_file() else None  # named with the summary, after the run
     return options
 
 
@@ -242,6 +241,10 @@ def _run(args: argparse.Namespace, options: Options) -> int:
     if not options.quiet and sys.stderr is not None:
         from ncfix.summary import print_summary
 
+        # Which settings were used, said once the run has succeeded: an error stays one line (and an
+        # error in the config names the file itself).
+        if getattr(args, "config_read", None) is not None:
+            _stderr(f"ncfix: using config {args.config_read}")
         try:
             print_summary(report, verbose=options.verbose)
         except (OSError, ValueError):  # standard error is gone or full: the output is written, its status stands

@@ -222,8 +222,8 @@ def test_a_damaged_or_keyless_cache_file_is_rebuilt_with_a_notice(tmp_path, capl
 
 def test_a_check_from_swapped_cache_files_is_the_cold_check(tmp_path, monkeypatch, caplog):
     """The issue's case end to end: a warm cache whose two grid files (the part's and the clipped
-    head's) were swapped gives the cold run's colliding blocks (trusted by name it gave 38 of 42),
-    plus a notice for each."""
+    head's) were swapped gives the cold run's colliding blocks (trusted by name, the swapped grids
+    gave fewer), plus a notice for each."""
     sys.path.insert(0, str(CASES))
     import make_cases
     from ncfix.profiles import load_profile
@@ -240,7 +240,7 @@ def test_a_check_from_swapped_cache_files_is_the_cold_check(tmp_path, monkeypatc
     _swap(first, second)
     with caplog.at_level("WARNING", logger="ncfix.cache"):
         warm = check()
-    assert warm == cold and len(cold) == 42
+    assert cold and warm == cold
     assert sorted(_notices(caplog)) == [f"cache: {p.name} does not match its key (rebuilt)" for p in (first, second)]
 
 

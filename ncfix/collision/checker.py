@@ -143,8 +143,10 @@ def resolve_device(name: str) -> str:
             raise ConfigError("--device cuda needs torch, which is not installed", where="--device",
                               fix="install torch with CUDA support, or use --device cpu") from None
         if not torch.cuda.is_available():
-            raise ConfigError("torch sees no CUDA device on this machine", where="--device",
-                              fix="use --device cpu or auto") from None
+            why = (f"this torch ({torch.__version__}) is built for the CPU only" if torch.version.cuda is None
+                   else "torch sees no CUDA device on this machine")
+            raise ConfigError(why, where="--device cuda",
+                              fix="use --device cpu or auto, or install a CUDA build of torch") from None
         return name
     if name != "auto":
         return name
