@@ -526,6 +526,9 @@ class CorrectStage:
             s = self.report.summary
             s["max_tilt_deg"] = max(s["max_tilt_deg"], round(float(tilt[i]), 4))
             s["max_step_deg"] = max(s["max_step_deg"], round(float(step[i]), 4))
+        from ncfix.correct.extrusion import follow
+
+        follow(self, first, last)  # E and inverse-time F of the moves whose length changed
 
 
 def _finite(value: float) -> float | None:
