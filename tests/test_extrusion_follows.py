@@ -53,9 +53,9 @@ def _program(e_mode: str | None, inverse_time: bool = False) -> bytes:
     return ("\n".join(lines) + "\n").encode()
 
 
-def _fix(data: bytes):
+def _fix(data: bytes, pivot: str = "tip"):
     options = Options(head=str(HEAD), part=[str(WALL)], check=False, device="cpu", bead_radius=0.0,
-                      strategy="graph", standoff=STANDOFF, pivot="tip")
+                      strategy="graph", standoff=STANDOFF, pivot=pivot)
     out = io.BytesIO()
     report = run(io.BytesIO(data), out, options, "follow.nc")
     return out.getvalue(), report
@@ -159,3 +159,11 @@ def test_a_program_without_e_or_g93_gets_only_its_tilts():
     assert {c["reason"] for c in report.changes} <= {"collision", "blend"}
     for c in report.changes:
         assert " F" not in c["after"] or c["after"].split(" F")[1] == c["before"].split(" F")[1]
+
+
+def test_with_pivot_point_p_stays_and_no_e_word_changes():
+    data = _program("M82")
+    fixed, report = _fix(data, pivot="point")
+    assert report.summary["changed_blocks"] > 0
+    assert [e for *_, e, _ in _moves(fixed)] == [e for *_, e, _ in _moves(data)]
+    assert {c["reason"] for c in report.changes} <= {"collision", "blend"}

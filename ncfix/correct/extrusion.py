@@ -18,8 +18,9 @@ move, an M82/M83 switch) splits the episode: each part keeps its own total.
 Inverse time (G93). F is 1/minutes, so a move of new length L′ gets F·L/L′: it keeps its
 programmed feed rate (mm/min). A block changed for that alone gets the reason ``feed rescaled``.
 
-New values are printed with the decimals of the part's E (or F) words, in each word's own style
-(``ncfix.nc.emit.format_value``).
+With ``--pivot point`` P stays and none of this runs (the printed words' rounding alone would
+otherwise rewrite E). New values are printed with the decimals of the part's E (or F) words, in
+each word's own style (``ncfix.nc.emit.format_value``).
 """
 
 from __future__ import annotations

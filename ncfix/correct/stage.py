@@ -528,7 +528,8 @@ class CorrectStage:
             s["max_step_deg"] = max(s["max_step_deg"], round(float(step[i]), 4))
         from ncfix.correct.extrusion import follow
 
-        follow(self, first, last)  # E and inverse-time F of the moves whose length changed
+        if self.options.pivot == "tip":  # P moved: E and inverse-time F of the moves whose length changed
+            follow(self, first, last)
 
 
 def _finite(value: float) -> float | None:
