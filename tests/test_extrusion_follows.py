@@ -27,9 +27,10 @@ FEED = 1200.0  # mm/min
 MOVE = re.compile(r"^G1 X(\S+) Y(\S+) Z(\S+) I\S+ J\S+ K\S+ (?:E(\S+))? ?(?:F(\S+))?")
 
 
-def _program(e_mode: str | None, inverse_time: bool = False) -> bytes:
+def _program(e_mode: str | None, inverse_time: bool = False, sparse: bool = False) -> bytes:
     """A path of 4 mm blocks at 30° to the wall and past it, so that the tilt away from the wall
-    moves P along the path and the moves get longer or shorter. ``e_mode``: "M82", "M83" or None (no E words)."""
+    moves P along the path and the moves get longer or shorter. ``e_mode``: "M82", "M83" or None
+    (no E words); ``sparse``: the feed moves leave out I J K (posts that state only what changes)."""
     d = np.array([np.cos(np.radians(30.0)), np.sin(np.radians(30.0)), 0.0])
     points = [s * d for s in np.arange(-100.0, 160.0 + 1e-9, STEP_MM)]
     lines = ["%", "O0001 (THE MATERIAL FOLLOWS THE FIX)",
@@ -42,7 +43,7 @@ def _program(e_mode: str | None, inverse_time: bool = False) -> bytes:
     lines.append(f"G1 X{x:.3f} Y{y:.3f} Z0.000 I0.000000 J0.000000 K1.000000 {plunge_feed}")
     e = 0.0
     for p in points[1:]:
-        words = f"G1 X{p[0]:.3f} Y{p[1]:.3f} Z0.000 I0.000000 J0.000000 K1.000000"
+        words = f"G1 X{p[0]:.3f} Y{p[1]:.3f} Z0.000" + ("" if sparse else " I0.000000 J0.000000 K1.000000")
         if e_mode:
             e += E_PER_MM * STEP_MM
             words += f" E{(E_PER_MM * STEP_MM if e_mode == 'M83' else e):.5f}"
@@ -167,3 +168,14 @@ def test_with_pivot_point_p_stays_and_no_e_word_changes():
     assert report.summary["changed_blocks"] > 0
     assert [e for *_, e, _ in _moves(fixed)] == [e for *_, e, _ in _moves(data)]
     assert {c["reason"] for c in report.changes} <= {"collision", "blend"}
+
+
+def test_a_block_both_restated_and_rescaled_is_reported_once():
+    """The move after the episode leaves out I J K (restated after the change) and, with
+    relative E, gets a new E: one change entry, counted once."""
+    data = _program("M83", sparse=True)
+    fixed, report = _fix(data)
+    lines = [c["line"] for c in report.changes]
+    assert len(lines) == len(set(lines)) == report.summary["changed_blocks"]
+    assert set(lines) == _changed_lines(data, fixed)
+    assert "extrusion rescaled" in {c["reason"] for c in report.changes}

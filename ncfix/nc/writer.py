@@ -76,7 +76,8 @@ class Writer:
             if not changed:
                 if not values:
                     return None
-                self.restored.append(i)
+                if i not in chunk.new_text:  # else reported already (ncfix.correct.extrusion)
+                    self.restored.append(i)
         for k, letter in enumerate(self.letters):
             new, old = float(target[k]), float(words[k])
             if math.isnan(new):
