@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from ncfix.report import Report
+from ncfix.report import Report, rescaled_note
 
 TABLE_ROWS = 2_000  # rows per table; the JSON report lists all
 SCROLL_ROWS = 15  # longer tables scroll in a box of about this height
@@ -69,7 +69,8 @@ def _cards(report: Report) -> str:
     if not o.check:
         cards += [
             ("changed blocks", f"{s['changed_blocks']:,}",
-             f"{by_reason.get('collision', 0):,} tilted off a collision, {by_reason.get('blend', 0):,} blended"),
+             f"{by_reason.get('collision', 0):,} tilted off a collision, {by_reason.get('blend', 0):,} blended"
+             + rescaled_note(by_reason)),
             ("unresolved blocks", f"{s['unresolved_blocks']:,}", "left as programmed"),
             ("max tilt", f"{s['max_tilt_deg']:.2f}°", f"limit {o.max_tilt:g}° (--max-tilt)"),
             ("max step", f"{s['max_step_deg']:.2f}°", f"limit {o.max_step:g}° (--max-step)"),

@@ -407,3 +407,9 @@ def _json_default(value: Any) -> Any:
     if isinstance(value, np.ndarray):
         return value.tolist()
     raise TypeError(f"cannot write {type(value).__name__} to the JSON report")
+
+
+def rescaled_note(by_reason: dict) -> str:
+    """", N with only E or F rescaled" when a fix rewrote such blocks (ncfix.correct.extrusion)."""
+    n = by_reason.get("extrusion rescaled", 0) + by_reason.get("feed rescaled", 0)
+    return f", {n:,} with only E or F rescaled" if n else ""

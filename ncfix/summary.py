@@ -7,7 +7,7 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
-from ncfix.report import Report, plural
+from ncfix.report import Report, plural, rescaled_note
 
 ROWS = 20  # table rows shown without -v; the report lists all
 LOG_WIDTH = 160  # columns when standard error is not a terminal
@@ -54,7 +54,7 @@ def print_summary(report: Report, verbose: bool = False, console: Console | None
         else:
             by_reason = report.changed_by_reason()
             console.print(f"  {plural(s['changed_blocks'], 'block')} changed: {by_reason.get('collision', 0):,} tilted "
-                          f"off a collision, {by_reason.get('blend', 0):,} blended into ramps "
+                          f"off a collision, {by_reason.get('blend', 0):,} blended into ramps{rescaled_note(by_reason)} "
                           f"(max tilt {s['max_tilt_deg']:.2f}°, max step {s['max_step_deg']:.2f}°; "
                           f"limits {report.options.max_tilt:g}° and {report.options.max_step:g}°)")
             freed = [e for e in report.collisions if e.get("outcome") == "freed"]
@@ -100,3 +100,4 @@ def _where(entry: dict[str, Any]) -> str:
 
 def _mm(value: Any) -> str:
     return "–" if value is None else f"{float(value):.3f}"
+

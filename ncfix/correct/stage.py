@@ -597,6 +597,10 @@ class CorrectStage:
             s = self.report.summary
             s["max_tilt_deg"] = max(s["max_tilt_deg"], round(float(tilt[i]), 4))
             s["max_step_deg"] = max(s["max_step_deg"], round(float(step[i]), 4))
+        from ncfix.correct.extrusion import follow
+
+        if self.options.pivot == "tip":  # P moved: E and inverse-time F of the moves whose length changed
+            follow(self, first, last)
 
 
 def _finite(value: float) -> float | None:

@@ -116,6 +116,21 @@ def rewrite_line(raw: str, profile: Profile, values: dict[str, float], required:
     return out + eol
 
 
+def replace_values(raw: str, profile: Profile, texts: dict[str, str]) -> str:
+    """Set the value text of the first word of each letter in ``texts`` (printed already, e.g. by
+    ncfix.correct.extrusion) on the line ``raw``; every other byte stays. A letter the line
+    lacks is left out (a caller only rewrites words the line has)."""
+    body, eol = split_eol(raw)
+    spans = _first_spans(body)
+    edits = [(spans[letter].value_start, spans[letter].value_end, text)
+             for letter, text in texts.items() if letter in spans and spans[letter].value != text]
+    if not edits:
+        return raw
+    for start, end, text in sorted(edits, key=lambda e: e[0], reverse=True):
+        body = body[:start] + text + body[end:]
+    return _refresh_checksum(body, profile) + eol
+
+
 def printed_decimals(raw: str, profile: Profile) -> dict[str, int]:
     """The decimals ``rewrite_line`` prints each kind of word with on the line ``raw``:
     ``{"linear": .., "angle": .., "vector": ..}`` (the profile's default, or more where the

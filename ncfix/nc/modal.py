@@ -159,6 +159,7 @@ class Interpreter:
         chunk.feed_mode[i] = state.feed_mode
         chunk.deposit_on[i] = -1 if state.deposit_on is None else int(state.deposit_on)
         chunk.opaque[i] = block.opaque
+        chunk.e_relative[i] = self.e_relative
         if block.arc is not None:
             chunk.arc[i] = block.arc
 
@@ -223,6 +224,7 @@ class Interpreter:
         chunk.incremental[a:b] = state.incremental
         chunk.feed_mode[a:b] = state.feed_mode
         chunk.deposit_on[a:b] = -1 if state.deposit_on is None else int(state.deposit_on)
+        chunk.e_relative[a:b] = self.e_relative
         self.words = positions[-1].tolist()
         last = motion[-1]
         self.motion = None if np.isnan(last) else int(last)

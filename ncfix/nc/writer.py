@@ -15,7 +15,7 @@ import re
 import numpy as np
 
 from ncfix.nc.chunk import Chunk
-from ncfix.nc.emit import rewrite_line
+from ncfix.nc.emit import replace_values, rewrite_line
 from ncfix.nc.lexer import code_of, word_spans
 from ncfix.nc.modal import MM_PER_INCH
 from ncfix.profiles import Profile
@@ -39,7 +39,7 @@ class Writer:
         self.restored = []
         moving = np.flatnonzero(chunk.motion >= 0)
         drifted = self.emitted is not None and not np.array_equal(self.emitted, self.programmed, equal_nan=True)
-        if not chunk.new_words and not drifted:
+        if not chunk.new_words and not chunk.new_text and not drifted:
             if len(moving):
                 last = chunk.words[moving[-1]]
                 self.emitted, self.programmed = last.copy(), last.copy()
@@ -52,6 +52,13 @@ class Writer:
         return b"".join(out)
 
     def _line(self, chunk: Chunk, i: int) -> str | None:
+        text = self._moved_line(chunk, i)
+        texts = chunk.new_text.get(i)
+        if texts:
+            text = replace_values(text if text is not None else chunk.lines[i].decode("latin-1"), self.profile, texts)
+        return text
+
+    def _moved_line(self, chunk: Chunk, i: int) -> str | None:
         words = chunk.words[i]
         target = chunk.new_words.get(i, words)
         previous_emitted, previous_programmed = self.emitted, self.programmed
@@ -69,7 +76,8 @@ class Writer:
             if not changed:
                 if not values:
                     return None
-                self.restored.append(i)
+                if i not in chunk.new_text:  # else reported already (ncfix.correct.extrusion)
+                    self.restored.append(i)
         for k, letter in enumerate(self.letters):
             new, old = float(target[k]), float(words[k])
             if math.isnan(new):
