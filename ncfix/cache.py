@@ -61,6 +61,8 @@ PAD_FIELD_ID = 0xD935
 KEY_MEMBER = "ncfix_key"
 
 _log = logging.getLogger("ncfix.cache")
+# The notice before a first build ("building the distance grid of mold.stl (first run ...)…").
+_build_log = logging.getLogger("ncfix.build")
 
 
 def cache_dir() -> Path:
@@ -210,11 +212,14 @@ def _npy(array: np.ndarray) -> tuple[bytes, memoryview]:
 
 def cached(kind: str, key: str, names: Iterable[str], build: Callable[[], T],
            to_arrays: Callable[[T], dict[str, np.ndarray]], from_arrays: Callable[[dict[str, np.ndarray]], T | None],
-           folder: str | os.PathLike[str] | None = None) -> tuple[T, bool]:
+           folder: str | os.PathLike[str] | None = None, what: str | None = None) -> tuple[T, bool]:
     """``build()``'s result, read from the cache when this key was built before -> (result, hit).
 
     The file must hold this key (``KEY_MEMBER``); ``from_arrays`` may return None for arrays that
     do not make a valid result. Either failure is a miss with a notice (module docstring).
+    what : what is built, for the notice logged before a first build ("building WHAT…"; a file
+        that is rebuilt has its own notice): a first run waits seconds to minutes here, and the
+        user should know why before it starts.
     """
     path = path_for(kind, key, folder)
     names = tuple(names)
@@ -237,6 +242,8 @@ def cached(kind: str, key: str, names: Iterable[str], build: Callable[[], T],
                     return result, True
                 problem = "holds other arrays than expected"
         _log.warning("cache: %s %s (rebuilt)", path.name, problem)
+    elif what:
+        _build_log.warning("building %s…", what)
     result = build()
     try:
         arrays = dict(to_arrays(result))

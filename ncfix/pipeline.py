@@ -92,6 +92,48 @@ def load_parts(options: Options, profile: Profile) -> list:
     return out
 
 
+class Tracker:
+    """Turns "the work has reached line L" into ``progress(bytes_done, lines_done)`` calls.
+
+    The pipeline reports each chunk it writes; a stage that works long on lines it holds (a
+    window, or a whole program shorter than one chunk) reports the line its work has reached
+    through its ``progress`` attribute (``reached``), so a bar moves while it works. Calls only
+    go forward: a report behind the last one is dropped."""
+
+    def __init__(self, progress: Callable[[int, int], None]):
+        self.progress = progress
+        self.held: list[tuple[int, int, np.ndarray]] = []  # (first line, bytes before it, end of each line)
+        self.bytes_read = 0
+        self.bytes_done = self.lines_done = 0
+
+    def read(self, chunk: Chunk) -> None:
+        ends = np.cumsum([len(line) for line in chunk.lines], dtype=np.int64)
+        self.held.append((chunk.first_lineno, self.bytes_read, ends))
+        self.bytes_read += int(ends[-1]) if len(ends) else 0
+
+    def reached(self, line: float) -> None:
+        """Every line before ``line`` (1-based, may be fractional) is done."""
+        done = int(line) - 1  # lines done
+        for first, before, ends in self.held:
+            if done < first - 1 + len(ends):
+                k = done - (first - 1)
+                self._report(before + (int(ends[k - 1]) if k > 0 else 0), done)
+                return
+        if self.held:
+            first, before, ends = self.held[-1]
+            self._report(before + int(ends[-1]) if len(ends) else before, first - 1 + len(ends))
+
+    def wrote(self, chunk: Chunk) -> None:
+        self.reached(chunk.first_lineno + len(chunk.lines))
+        while self.held and self.held[0][0] + len(self.held[0][2]) <= chunk.first_lineno + len(chunk.lines):
+            self.held.pop(0)
+
+    def _report(self, bytes_done: int, lines_done: int) -> None:
+        if bytes_done > self.bytes_done or lines_done > self.lines_done:
+            self.bytes_done, self.lines_done = max(bytes_done, self.bytes_done), max(lines_done, self.lines_done)
+            self.progress(self.bytes_done, self.lines_done)
+
+
 def build_stages(options: Options, profile: Profile, report: Report, box=None) -> list[Stage]:
     """The window stages for these options: none without --head, else the collision checker.
     ``box``: where the program's points and tips are (``program_box``), to crop the part grids
@@ -121,7 +163,7 @@ def build_stages(options: Options, profile: Profile, report: Report, box=None) -
         report.warnings.extend(loaded.warnings)
         parts.append((f"part:{Path(loaded.name).name}", loaded.mesh, loaded.closed))
         loaded_parts.append(loaded)
-    model = cached_head_model(head.mesh, options.pitch)
+    model = cached_head_model(head.mesh, options.pitch, name=Path(options.head).name)
     report.details.append(model.summary())
     reach_box = None
     if box is not None:
@@ -145,8 +187,9 @@ def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>",
         progress: Callable[[int, int], None] | None = None) -> Report:
     """Stream ``src`` to ``dst`` through the stages; returns the report (also for --check).
 
-    ``progress(bytes_done, lines_done)`` is called after each chunk read (bytes: the sum of the
-    raw lines' lengths, so it matches the input file's size at the end).
+    ``progress(bytes_done, lines_done)`` is called after each chunk written and while the stages
+    work on the lines they hold (``Tracker``); bytes: the sum of the raw lines' lengths, so it
+    matches the input file's size at the end.
     """
     started = time.perf_counter()
     note = None
@@ -164,7 +207,10 @@ def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>",
     box = program_box(src, profile, options, source) if options.head is not None and (options.part or options.platform) else None
     stages = build_stages(options, profile, report, box)
     writer = Writer(profile)
-    bytes_done = lines_done = 0
+    tracker = Tracker(progress) if progress is not None else None
+    for stage in stages:
+        if tracker is not None and hasattr(stage, "progress"):
+            stage.progress = tracker.reached
 
     def emit(chunks: Iterable[Chunk]) -> None:
         for chunk in chunks:
@@ -174,16 +220,16 @@ def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>",
                 report.add_restated(chunk.first_lineno + i)
             report.record_emitted(chunk.first_lineno, chunk.lines, rendered)
             dst.write(rendered)
+            if tracker is not None:
+                tracker.wrote(chunk)
 
     for chunk in read_chunks(src, interpreter):
-        bytes_done += sum(map(len, chunk.lines))
-        lines_done += len(chunk.lines)
+        if tracker is not None:
+            tracker.read(chunk)
         chunks: Iterable[Chunk] = (chunk,)
         for stage in stages:
             chunks = [out for c in chunks for out in stage.push(c)]
         emit(chunks)
-        if progress is not None:
-            progress(bytes_done, lines_done)
     tail: list[Chunk] = []
     for stage in stages:
         tail = [out for c in tail for out in stage.push(c)] + list(stage.flush())

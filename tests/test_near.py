@@ -133,3 +133,21 @@ def test_a_large_mesh_gets_larger_cells_and_the_same_distances():
     inside = np.minimum(points - lo, hi - points).min(axis=1)
     want = np.where((points > lo).all(axis=1) & (points < hi).all(axis=1), inside, outside)
     assert np.allclose(got, want, atol=1e-9, rtol=0)
+
+
+def test_far_points_read_wider_lists_and_get_the_same_distances(monkeypatch):
+    """Points beyond the cap are looked up in lists of a doubling cap before every triangle is read:
+    the distances are the very same floats as reading every triangle, near and far, and a point
+    past the last list (or outside every list) still gets its exact distance."""
+    from ncfix.geometry import near
+
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
+    tris = np.asarray(mesh.triangles, dtype=np.float64)
+    rng = np.random.default_rng(7)
+    points = np.concatenate([rng.uniform(-25.0, 25.0, (300, 3)), rng.uniform(-400.0, 400.0, (300, 3))])
+    tiered = near.surface_distances(tris, points, 3.0)
+    monkeypatch.setattr(near, "FAR_TIERS", 0)  # every point beyond the cap reads every triangle
+    every = near.surface_distances(tris, points, 3.0)
+    assert np.array_equal(tiered, every)
+    assert np.allclose(tiered, np.abs(np.linalg.norm(points, axis=1) - 20.0), atol=0.5)  # a sphere, nearly
+    assert (tiered > 3.0 * near.FAR_FACTOR ** 6).any() and (tiered < 3.0).any()

@@ -266,7 +266,7 @@ class Checker:
         head_bodies = mesh_bodies(head)
         self._nested = [Nested(head_bodies, mesh_bodies(mesh), closed) for _, mesh, closed in parts]
         self._margin_request = coal.CollisionRequest()  # ``_exact_part``'s, its margin set per test
-        self._proximity = [cached_head_proximity(head, p.mesh, p.grid) for p in self.parts]
+        self._proximity = [cached_head_proximity(head, p.mesh, p.grid, name=p.name.split(":", 1)[-1]) for p in self.parts]
         self.stats = CheckerStats()
         self._idle_levels: dict = {}
         self._store_beads = None  # (store state, its kept beads concatenated)
@@ -430,7 +430,7 @@ class Checker:
 
     def sweep_parts(self, C: np.ndarray, R: np.ndarray, lin: np.ndarray, ang: np.ndarray,
                     cum_lin: np.ndarray | None = None, cum_ang: np.ndarray | None = None, *,
-                    exact: bool = True, move_of: np.ndarray | None = None, refine=None) -> np.ndarray:
+                    exact: bool = True, move_of: np.ndarray | None = None, refine=None, progress=None) -> np.ndarray:
         """(n, n_parts) bool: which parts each pose hits, with sweep margins lin (mm) and ang (rad)
         per pose (a head point at distance d from the tip is checked with lin + ang·d). With
         cum_lin / cum_ang (consecutive samples) groups are certified first. Without ``exact``
@@ -454,7 +454,9 @@ class Checker:
             if move_of is not None:
                 idx = idx[np.lexsort((-idx, move_of[idx]))]
             hit_move = -1
-            for j in idx:
+            for done, j in enumerate(idx):
+                if progress is not None:
+                    progress((k + (done + 1) / len(idx)) / len(self.parts))
                 if move_of is not None and move_of[j] == hit_move:
                     continue
                 margin = float(lin[j] + self.rho_mm * ang[j])
@@ -609,7 +611,7 @@ class Checker:
 
     def sweep_deposit(self, C, R, lin, ang, cum_lin, cum_ang, seq, store: BeadStore, pending, pending_seq, *,
                       stamped: bool = False, move_of: np.ndarray | None = None,
-                      refine=None, clearances: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                      refine=None, clearances: bool = True, progress=None) -> tuple[np.ndarray, np.ndarray]:
         """Deposit hits (n,) and exact clearances (n,) with sweep margins (lin, ang) per pose and,
         given cum_lin / cum_ang, groups certified first. ``stamped``: the pending beads are in the
         store's field already (else they are overlaid for the call). ``move_of``: as in
@@ -617,7 +619,8 @@ class Checker:
         when that one is free); ``refine``: as in ``sweep_parts``. Without ``clearances`` the
         hits are the same and the kept beads' clearances not computed (-inf): such a hit with a
         sweep margin is then tested again without it before refining (with them, a hit whose own
-        clearance is below the clearance is known to collide without that test)."""
+        clearance is below the clearance is known to collide without that test). ``progress``: as in
+        ``sweep_parts``."""
         n = len(C)
         hit = np.zeros(n, dtype=bool)
         clearance = np.full(n, np.inf)
@@ -642,8 +645,11 @@ class Checker:
                     hit_moves = np.unique(move_of[hit])
                     sel = sel[~np.isin(move_of[sel], hit_moves)]
                 if len(sel):
+                    tick = None if progress is None else (
+                        lambda f, k=k: progress((k + f) / len(passes)))
                     hit[sel], clearance[sel] = self._exact_deposit(C[sel], R[sel], lin[sel], ang[sel], seq[sel],
-                                                                   store, pending, pending_seq, bead_field, clearances)
+                                                                   store, pending, pending_seq, bead_field, clearances,
+                                                                   progress=tick)
                     # A pose whose own clearance is below the clearance collides whatever the sweep does
                     # (-inf: not computed, ``clearances`` False).
                     cl = clearance[sel]
@@ -674,7 +680,7 @@ class Checker:
         return hit
 
     def _exact_deposit(self, C, R, lin, ang, seq, store: BeadStore, pending, pending_seq, bead_field: BeadField,
-                       clearances: bool = True):
+                       clearances: bool = True, progress=None):
         """The exact deposit test of undecided poses (``_exact_kept``). Beads the store retired
         (BeadStore: only a field of them is left) cannot be tested exactly: a pose that their
         field cannot clear counts as a hit, with clearance 0 (errs toward "collides")."""
@@ -691,6 +697,8 @@ class Checker:
             sel = rest[a:a + EXACT_POSE_BATCH]
             hit[sel], clearance[sel] = self._exact_kept(C[sel], R[sel], lin[sel], ang[sel], seq[sel], store,
                                                         pending, pending_seq, bead_field, clearances)
+            if progress is not None:
+                progress(min(a + EXACT_POSE_BATCH, len(rest)) / len(rest))
         return hit, clearance
 
     def _exact_kept(self, C, R, lin, ang, seq, store: BeadStore, pending, pending_seq, bead_field: BeadField,

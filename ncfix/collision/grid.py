@@ -249,7 +249,10 @@ def cached_distance_grid(mesh: trimesh.Trimesh, pitch_mm: float, *, closed: bool
             return None
         return DistanceGrid(dist, origin.astype(np.float64), float(a["pitch_mm"]), name, bounds.astype(np.float64))
 
+    body = "the head" if name == "head" else name.split(":", 1)[-1] or "a mesh"
+    what = (f"the distance grid of {body} (first run for this mesh"
+            + (" and this program's reach)" if bounds_mm is not None else ")"))
     grid, _ = cache.cached("grid", key, _GRID_ARRAYS,
                            lambda: build_distance_grid(mesh, pitch_mm, closed=closed, name=name, bounds_mm=bounds_mm),
-                           to_arrays, from_arrays, cache_dir)
+                           to_arrays, from_arrays, cache_dir, what=what)
     return grid

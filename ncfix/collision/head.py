@@ -345,9 +345,11 @@ def build_sphere_tree(centers_mm: np.ndarray, radii_mm: np.ndarray, leaf_cell_mm
 
 
 def cached_head_model(head: trimesh.Trimesh, pitch_mm: float = 0.5, *, zones: RiskZones = RiskZones(),
-                      max_level: int = 4, target_spheres: int = 24, cache_dir: str | None = None) -> HeadModel:
+                      max_level: int = 4, target_spheres: int = 24, cache_dir: str | None = None,
+                      name: str = "the head") -> HeadModel:
     """``build_head_model``'s model, read from the on-disk cache (``ncfix.cache``) when the same
-    head was modelled before with the same parameters, code and libraries."""
+    head was modelled before with the same parameters, code and libraries (``name``: the head's
+    file, for the notice of a build)."""
     key = cache.make_key(
         "head",
         np.asarray(head.vertices, dtype=np.float64), np.asarray(head.faces, dtype=np.int64), float(pitch_mm),
@@ -369,7 +371,8 @@ def cached_head_model(head: trimesh.Trimesh, pitch_mm: float = 0.5, *, zones: Ri
     model, _ = cache.cached("head", key, _MODEL_ARRAYS,
                             lambda: build_head_model(head, pitch_mm, zones=zones, max_level=max_level,
                                                      target_spheres=target_spheres),
-                            lambda model: cache.fields(model, _MODEL_ARRAYS), from_arrays, cache_dir)
+                            lambda model: cache.fields(model, _MODEL_ARRAYS), from_arrays, cache_dir,
+                            what=f"the ball model of {name} (first run for this head)")
     return model
 
 

@@ -25,6 +25,7 @@ numbers).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -120,7 +121,8 @@ class PathChecker:
         return P, N, R
 
     def check(self, moves: Moves, store: BeadStore, seq0: int, *, commit: bool = True,
-              prior: np.ndarray | None = None, clearances: bool = True) -> tuple[MoveHits, int]:
+              prior: np.ndarray | None = None, clearances: bool = True,
+              progress: Callable[[float], None] | None = None) -> tuple[MoveHits, int]:
         """Check every move (end pose and sweep) against the parts and the beads laid before it.
 
         store : the beads of every earlier move; seq0 : the sequence number of the first sample.
@@ -130,6 +132,7 @@ class PathChecker:
         before these; without ``commit`` only): every sample sees them, none as its own.
         clearances : False when only the hits are wanted: the deposit hits' clearances (the
         deepest bead of each, for the report) are then not computed (``deposit_clearance`` -inf).
+        progress : called with the fraction of the check done (0..1) as it goes (a progress bar).
         Returns the hits and the sequence number after the last sample.
         """
         if prior is not None and len(prior) and commit:
@@ -184,7 +187,9 @@ class PathChecker:
             pend = np.concatenate([np.asarray(prior, dtype=np.float64).reshape(-1, 3), pend])
             pend_seq = np.concatenate([np.full(len(prior), seq0 - 1, dtype=np.int64), pend_seq])
         refine = Refiner(self, moves, ws, we, arcs, row_of, (k - 1) / m[row_of], t)
-        part_hit = ck.sweep_parts(C, R, step, turn, cum_lin, cum_ang, move_of=row_of, refine=refine)
+        # The parts take the first half of the bar, the beads the second (a guess that only moves it).
+        part_hit = ck.sweep_parts(C, R, step, turn, cum_lin, cum_ang, move_of=row_of, refine=refine,
+                                  progress=None if progress is None else lambda f: progress(0.5 * f))
         dep_hit = np.zeros(total, dtype=bool)
         dep_clear = np.full(total, np.inf)
         if ck.bead_radius_mm > 0 and (store.count or len(pend)):
@@ -196,7 +201,8 @@ class PathChecker:
                 store.field(ck.pitch_mm).add(pend)
             dep_hit, dep_clear = ck.sweep_deposit(C, R, step, turn, cum_lin, cum_ang, seq, store, pend, pend_seq,
                                                   stamped=stamped, move_of=row_of, refine=refine,
-                                                  clearances=clearances)
+                                                  clearances=clearances,
+                                                  progress=None if progress is None else lambda f: progress(0.5 + 0.5 * f))
             if stamped:
                 store._add_exact(pend)
         elif commit:
@@ -212,6 +218,8 @@ class PathChecker:
         dep_rows = np.logical_or.reduceat(dep_hit, first)
         dep_clear_rows = np.minimum.reduceat(dep_clear, first)
         hits = MoveHits(part_rows, dep_rows, dep_clear_rows, sample, C, R, total, first, margin)
+        if progress is not None:
+            progress(1.0)
         return hits, seq0 + total
 
     def margins(self, P, N, C, R, prev_P, prev_N, prev_C, prev_R, on_arc) -> tuple[np.ndarray, np.ndarray]:

@@ -273,9 +273,10 @@ class HeadProximity:
 
 
 def cached_head_proximity(head: trimesh.Trimesh, part: trimesh.Trimesh, grid: DistanceGrid,
-                          cache_dir: str | None = None) -> HeadProximity:
+                          cache_dir: str | None = None, name: str = "a part") -> HeadProximity:
     """A HeadProximity of the head against the part, its arrays read from the on-disk cache
-    (``ncfix.cache``) when they were built before from the same meshes, sizes, code and libraries."""
+    (``ncfix.cache``) when they were built before from the same meshes, sizes, code and libraries
+    (``name``: the part's file, for the notice of a build)."""
     from ncfix import cache
 
     key = cache.make_key(
@@ -294,5 +295,6 @@ def cached_head_proximity(head: trimesh.Trimesh, part: trimesh.Trimesh, grid: Di
         return a
 
     arrays, _ = cache.cached("proximity", key, _ARRAYS, lambda: build_arrays(head, part.triangles),
-                             lambda a: a, from_arrays, cache_dir)
+                             lambda a: a, from_arrays, cache_dir,
+                             what=f"the head's proximity lists for {name} (first run for this head and mesh)")
     return HeadProximity(arrays, part.triangles, grid)

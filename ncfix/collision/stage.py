@@ -154,6 +154,7 @@ class CheckStage:
         self.seq = 0
         self.store = BeadStore(checker.bead_radius_mm)
         self.samples = 0
+        self.progress = None  # set by the pipeline: progress(line) as the work reaches a line
 
     def push(self, chunk):
         rows = np.nonzero(chunk.motion >= 0)[0]
@@ -163,7 +164,11 @@ class CheckStage:
             rows_w, moves = self.motion.moves(chunk, rows[a:a + self.window], dep)
             if len(moves) == 0:
                 continue
-            hits, self.seq = self.path.check(moves, self.store, self.seq)
+            tick = None
+            if self.progress is not None:
+                first, end = chunk.first_lineno + rows_w[0], chunk.first_lineno + rows_w[-1] + 1
+                tick = lambda f, first=first, end=end: self.progress(first + f * (end - first))
+            hits, self.seq = self.path.check(moves, self.store, self.seq, progress=tick)
             self.samples += hits.samples
             record_collisions(self.report, self.checker, chunk.first_lineno + rows_w, hits,
                               resolved=bool(self.options.check))

@@ -58,18 +58,19 @@ def cache_key(mesh: trimesh.Trimesh, threshold: float) -> str:
 
 
 def decompose(
-    mesh: trimesh.Trimesh, *, threshold: float = 0.05, cache_dir: str | Path | None = None
+    mesh: trimesh.Trimesh, *, threshold: float = 0.05, cache_dir: str | Path | None = None, name: str = "a part"
 ) -> Decomposition:
     """Convex pieces of ``mesh`` (closed trimesh, workpiece mm), from the cache when present.
 
     threshold : CoACD's concavity threshold (smaller: more, tighter pieces)
     cache_dir : folder of the .npz files; None means ``ncfix.cache.cache_dir()``. A folder that
         cannot be written is not an error: the pieces are returned uncached.
+    name : the part, for the notice of a decomposition (``cache.cached``)
     """
     start = time.perf_counter()
     key = cache_key(mesh, threshold)
     pieces, hit = cache.cached("coacd", key, _ARRAYS, lambda: _run_coacd(mesh, threshold), _to_arrays, _from_arrays,
-                               cache_dir)
+                               cache_dir, what=f"the CoACD decomposition of {name.split(':', 1)[-1]} (first run for this mesh)")
     return Decomposition(pieces=pieces, seconds=time.perf_counter() - start, cached=hit, key=key)
 
 

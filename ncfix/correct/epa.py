@@ -135,7 +135,7 @@ class EpaModel:
         self.cached = True
         self.decompositions: list[tuple[str, Decomposition]] = []  # per part, as ``decompose`` gave it
         for name, mesh in parts:
-            result = decompose(mesh, threshold=threshold, cache_dir=cache_dir)
+            result = decompose(mesh, threshold=threshold, cache_dir=cache_dir, name=name)
             self.decompositions.append((name, result))
             self.decompose_seconds += result.seconds
             self.cached &= result.cached

@@ -211,6 +211,7 @@ class CorrectStage:
         self._beads_moved_by: dict[int, list[tuple[int, int]]] = {}
         report.summary.setdefault("freed_blocks", 0)
         report.summary.setdefault("found_after_changes", 0)
+        self.progress = None  # set by the pipeline: progress(line) as the work reaches a line
 
     # -- stage protocol ------------------------------------------------------------------------
     def push(self, chunk):
@@ -280,6 +281,8 @@ class CorrectStage:
         self.prev_words = self.rows.words[b - 1].copy()
         self.prev_programmed = self.rows.programmed[b - 1].copy()
         self.final = b
+        if self.progress is not None:
+            self.progress(int(self.rows.line[b - 1]) + 1)
 
     def _trace(self, a: int, b: int) -> None:
         r = self.rows
@@ -355,7 +358,8 @@ class CorrectStage:
                 prior.append(self.path.bead_points(self._moves(covered, s)))
                 covered = s
             pts = np.concatenate(prior) if prior else None
-            hits, _ = self.path.check(self._moves(s, e), self.store, 0, commit=False, prior=pts)
+            hits, _ = self.path.check(self._moves(s, e), self.store, 0, commit=False, prior=pts,
+                                      progress=self._detecting(s, e))
             samples += hits.samples
             self.checked_rows += e - s
             self._remember(s, e, hits)
@@ -364,6 +368,14 @@ class CorrectStage:
         sample = np.where(d.has_sample[a:b], np.arange(n), -1)
         return MoveHits(d.part_hit[a:b].copy(), d.deposit_hit[a:b].copy(), d.deposit_clearance[a:b].copy(),
                         sample, d.C[a:b].copy(), d.R[a:b].copy(), samples)
+
+    def _detecting(self, a: int, b: int):
+        """A progress hook for the detection of rows a..b-1: it moves the bar over the first half
+        of their lines, since fixing the episodes among them takes the rest (commits move it)."""
+        if self.progress is None or b <= a:
+            return None
+        first, end = float(self.rows.line[a]), float(self.rows.line[b - 1]) + 1
+        return lambda f: self.progress(first + 0.5 * f * (end - first))
 
     def _remember(self, a: int, b: int, hits: MoveHits) -> None:
         """Keep the detection of rows a..b-1 (``hits``, from a check of exactly these moves)."""

@@ -241,6 +241,21 @@ def _distances_kernel(points, out, tris, lo, cell, dims, cap, start, listed):  #
                                      start, listed))
 
 
+def _near_distances_kernel(points, out, tris, lo, cell, dims, cap, start, listed):  # pragma: no cover - compiled
+    """out[i] = the exact distance from points[i] to the surface when it is within ``cap`` (the
+    cell's list holds the nearest triangle then), else -1 (not known here)."""
+    for i in range(points.shape[0]):
+        best = np.inf
+        x = int(np.floor((points[i, 0] - lo[0]) / cell))
+        y = int(np.floor((points[i, 1] - lo[1]) / cell))
+        z = int(np.floor((points[i, 2] - lo[2]) / cell))
+        if 0 <= x < dims[0] and 0 <= y < dims[1] and 0 <= z < dims[2]:
+            k = (x * dims[1] + y) * dims[2] + z
+            for j in range(start[k], start[k + 1]):
+                best = min(best, _tri_d2(points[i, 0], points[i, 1], points[i, 2], tris[listed[j]]))
+        out[i] = np.sqrt(best) if best <= cap * cap else -1.0
+
+
 def _side(px, py, pz, d, tris, slo, spitch, inside):  # pragma: no cover - compiled
     """-1 inside, 1 outside, for a point at distance d from the surface: the sign grid where it
     is certain, else the winding number."""
@@ -296,6 +311,7 @@ _side = _jit(_side)
 _touch = _jit(_touch)
 _nearest_d2 = _jit(_nearest_d2)
 _distances_kernel = _jit(_distances_kernel)
+_near_distances_kernel = _jit(_near_distances_kernel)
 _signed_distance = _jit(_signed_distance)
 depth_bound = _jit(depth_bound)
 _signed_distance_below = _jit(_signed_distance_below)
@@ -303,17 +319,21 @@ _count_kernel = _jit(_count_kernel)
 _first_touch_kernel = _jit(_first_touch_kernel)
 
 
-def _cell_lists(tris: np.ndarray, cap_mm: float, cell_mm: float):
+def _cell_lists(tris: np.ndarray, cap_mm: float, cell_mm: float, region: np.ndarray | None = None):
     """Cells of ``cell_mm`` over the triangles' box padded by ``cap_mm`` + a cell, each listing every
     triangle within ``cap_mm`` of any of its points -> (lo, dims, start, listed, cell_mm) (module
     doc). Where the box would need more than MAX_CELLS cells (a large mesh) the cell grows until it
-    does not: the lists hold the same triangles for any cell size (longer ones for larger cells)."""
-    box = np.ptp(tris.reshape(-1, 3), axis=0)
-    while np.prod(np.ceil((box + 2.0 * (cap_mm + cell_mm)) / cell_mm)) > MAX_CELLS:
+    does not: the lists hold the same triangles for any cell size (longer ones for larger cells).
+    ``region`` (2, 3): only the cells over this box (padded by a cell) are made, for queries there
+    (a large mesh queried near a path); a point outside the cells reads every triangle."""
+    flat = tris.reshape(-1, 3)
+    if region is None:
+        lo, hi = flat.min(axis=0) - cap_mm, flat.max(axis=0) + cap_mm
+    else:
+        lo, hi = np.asarray(region[0], dtype=np.float64), np.asarray(region[1], dtype=np.float64)
+    while np.prod(np.ceil((hi - lo + 2.0 * cell_mm) / cell_mm)) > MAX_CELLS:
         cell_mm *= 1.25
-    pad = cap_mm + cell_mm
-    lo = tris.reshape(-1, 3).min(axis=0) - pad
-    hi = tris.reshape(-1, 3).max(axis=0) + pad
+    lo, hi = lo - cell_mm, hi + cell_mm
     dims = np.maximum(np.ceil((hi - lo) / cell_mm).astype(np.int64), 1)
     reach = cap_mm + 0.5 * np.sqrt(3.0) * cell_mm + 1e-9
     counts = np.zeros(int(np.prod(dims)), dtype=np.int64)
@@ -325,10 +345,19 @@ def _cell_lists(tris: np.ndarray, cap_mm: float, cell_mm: float):
     return lo, dims, start, listed, float(cell_mm)
 
 
+# ``surface_distances``: a point farther than the cap from the surface is looked up again in
+# lists of this many times the cap (cells as much larger), up to FAR_TIERS times, before it reads
+# every triangle (a grid cropped from a large mesh has many such points beside its cut faces).
+FAR_FACTOR = 2.0
+FAR_TIERS = 6
+
+
 def surface_distances(triangles: np.ndarray, points: np.ndarray, cap_mm: float, cell_mm: float = 2.0) -> np.ndarray:
     """The exact distance (mm, float64) from each point (n, 3) to the nearest of the triangles
-    (m, 3, 3). A point within ``cap_mm`` of them reads one cell's list, a farther one every
-    triangle (so ``cap_mm`` only sets the cost). Runs of points go to the machine's cores."""
+    (m, 3, 3). A point within ``cap_mm`` of them reads one cell's list; a farther one the lists of
+    a larger cap (``FAR_FACTOR``), and past the last one every triangle: the same minimum over the
+    same triangle distances either way, so ``cap_mm`` only sets the cost. The lists cover only the
+    points' box. Runs of points go to the machine's cores."""
     from ncfix.collision.split import map_runs
 
     tris = np.ascontiguousarray(triangles, dtype=np.float64)
@@ -339,12 +368,27 @@ def surface_distances(triangles: np.ndarray, points: np.ndarray, cap_mm: float, 
     if not len(tris):
         out[:] = np.inf
         return out
-    lo, dims, start, listed, cell_mm = _cell_lists(tris, float(cap_mm), float(cell_mm))
+    todo = np.arange(len(pts))
+    cap, cell = float(cap_mm), float(cell_mm)
+    for tier in range(FAR_TIERS + 1):
+        sub = np.ascontiguousarray(pts[todo])
+        got = np.empty(len(sub), dtype=np.float64)
+        lo, dims, start, listed, used_cell = _cell_lists(tris, cap, cell, np.array([sub.min(axis=0), sub.max(axis=0)]))
+        last = tier == FAR_TIERS
 
-    def run(a: int, b: int) -> None:
-        _distances_kernel(pts[a:b], out[a:b], tris, lo, cell_mm, dims, float(cap_mm), start, listed)
+        def run(a: int, b: int) -> None:
+            if last:
+                _distances_kernel(sub[a:b], got[a:b], tris, lo, used_cell, dims, cap, start, listed)
+            else:
+                _near_distances_kernel(sub[a:b], got[a:b], tris, lo, used_cell, dims, cap, start, listed)
 
-    map_runs(run, len(pts))
+        map_runs(run, len(sub))
+        known = got >= 0.0
+        out[todo[known]] = got[known]
+        todo = todo[~known]
+        if not len(todo):
+            break
+        cap, cell = cap * FAR_FACTOR, cell * FAR_FACTOR
     return out
 
 
@@ -410,7 +454,7 @@ class NearSurface:
 
 
 def cached_near_surface(triangles: np.ndarray, cap_mm: float, cell_mm: float = 2.0,
-                        cache_dir: str | None = None) -> NearSurface:
+                        cache_dir: str | None = None, name: str = "the head") -> NearSurface:
     """``NearSurface(triangles, cap_mm, cell_mm)`` with its depth bound made, read from the on-disk
     cache (``ncfix.cache``) when it was built before from the same triangles, sizes and code."""
     from ncfix import cache
@@ -437,5 +481,5 @@ def cached_near_surface(triangles: np.ndarray, cap_mm: float, cell_mm: float = 2
         return near
 
     near, _ = cache.cached("near", key, _NEAR_ARRAYS, build, lambda near: cache.fields(near, _NEAR_ARRAYS),
-                           from_arrays, cache_dir)
+                           from_arrays, cache_dir, what=f"the cell lists of {name} (first run for this mesh)")
     return near
