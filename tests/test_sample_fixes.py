@@ -239,11 +239,13 @@ def test_rechecks_find_the_same_hits_without_clearances(monkeypatch):
     original = PathChecker.check
     seen = []
 
-    def both(self, moves, store, seq0, *, commit=True, prior=None, clearances=True):
+    def both(self, moves, store, seq0, *, commit=True, prior=None, clearances=True, progress=None):
         if commit:
-            return original(self, moves, store, seq0, commit=commit, prior=prior, clearances=clearances)
+            return original(self, moves, store, seq0, commit=commit, prior=prior, clearances=clearances,
+                            progress=progress)
         full, end = original(self, moves, store, seq0, commit=False, prior=prior, clearances=True)
-        fast, end2 = original(self, moves, store, seq0, commit=False, prior=prior, clearances=clearances)
+        fast, end2 = original(self, moves, store, seq0, commit=False, prior=prior, clearances=clearances,
+                              progress=progress)
         assert end == end2 and np.array_equal(full.part_hit, fast.part_hit)
         assert np.array_equal(full.deposit_hit, fast.deposit_hit)
         seen.append((clearances, int(full.deposit_hit.sum())))
