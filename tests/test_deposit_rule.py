@@ -146,7 +146,8 @@ def test_no_pose_that_touches_the_stated_bead_is_called_free():
     from ncfix.collision.head import cached_head_model
     from ncfix.collision.deposit import BeadStore
     from ncfix.geometry.mesh import load_head
-    from ncfix.reference import _clip_head
+    from ncfix.geometry.frames import minimal_rotation
+    from ncfix.reference import _bvh, _clip_head
 
     width, height, allowance = 2.5, 0.8, 1.0
     bead = BeadShape.stated(0.5, width, height, 0.0)
@@ -160,26 +161,14 @@ def test_no_pose_that_touches_the_stated_bead_is_called_free():
     solid.apply_translation(centre)
     clipped = _clip_head(head, allowance)
 
-    def bvh(mesh):
-        m = coal.BVHModelOBBRSS()
-        m.beginModel(len(mesh.faces), len(mesh.vertices))
-        m.addVertices(np.asarray(mesh.vertices, dtype=np.float64))
-        m.addTriangles(np.asarray(mesh.faces, dtype=np.int64))
-        m.endModel()
-        return m
-
-    head_bvh, bead_bvh = bvh(clipped), bvh(solid)
+    head_bvh, bead_bvh = _bvh(clipped), _bvh(solid)
     rng = np.random.default_rng(3)
     touching = 0
     for _ in range(300):
         axis = rng.normal(size=3)
         axis[2] = abs(axis[2]) + 0.3
         axis /= np.linalg.norm(axis)
-        z = np.array([0.0, 0.0, 1.0])
-        v = np.cross(z, axis)
-        s, c = np.linalg.norm(v), float(z @ axis)
-        vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-        R = np.eye(3) + vx + vx @ vx * ((1 - c) / (s * s)) if s > 1e-12 else np.eye(3)
+        R = minimal_rotation(axis)[0]
         C = centre + rng.uniform(-2.5, 2.5, 3) + np.array([0.0, 0.0, 0.5])
         result = coal.CollisionResult()
         coal.collide(head_bvh, coal.Transform3s(R, C), bead_bvh, coal.Transform3s(), coal.CollisionRequest(), result)
