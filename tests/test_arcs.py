@@ -57,6 +57,15 @@ def test_arcs_ncfix_cannot_follow_have_no_arc(profile, lines):
     assert block.motion is not None and block.arc is None
 
 
+def test_a_siemens_arc_carries_its_tool_vector_and_i_j_k_stay_the_centre():
+    """A3= B3= C3= on a G2/G3 orient the arc's end (they are not its centre); Fanuc I J K on an
+    arc are the centre and leave the vector as it was."""
+    siemens = _arcs("sinumerik-vector", ["G1 X10 Y0 Z0 A3=0 B3=0 C3=1", "G3 X0 Y10 CR=10 A3=0 B3=0.6 C3=0.8"])[-1]
+    assert siemens.arc is not None and np.allclose(siemens.words[3:], [0, 0.6, 0.8])
+    fanuc = _arcs("ijk", ["G1 X10 Y0 Z0 I0 J0 K1", "G3 X0 Y10 I-10 J0"])[-1]
+    assert fanuc.arc is not None and np.allclose(fanuc.words[3:], [0, 0, 1])
+
+
 def test_heidenhain_pole_does_not_move_the_machine():
     blocks = _arcs("heidenhain-ln", ["L X+10 Y+5 Z+1", "CC X+0 Y+0", "L Z+2"])
     assert blocks[2].words[:3] == (10.0, 5.0, 2.0)

@@ -86,6 +86,40 @@ def test_a_half_turn_turns_in_the_documented_plane():
     assert np.allclose(words[4, 3:6], [0.0, 1.0, 0.0])
 
 
+# A Siemens block whose vector words run together (`A3=-0.07B3=…`) reads as one expression: the
+# pose is unknown. As the first moving block of a program (the part-placement check reads it) it
+# once reached the rotation of a NaN vector and exited 2 "internal error" (found by
+# test_properties on CI).
+GLUED = (b"G1 X-6 Y12 Z6 A3=0.107217 B3=0.088734 C3=0.990268 F6000\n"
+         b"N273G1X6.000Y-8.000Z0.0000A3=-0.072996B3=-0.576397C3=-0.813903\nM30\n")
+
+
+@pytest.mark.parametrize("check", [True, False])
+def test_an_unreadable_tool_vector_is_an_unchecked_block_not_a_crash(tmp_path, capsysbinary, check):
+    src = tmp_path / "glued.mpf"
+    src.write_bytes(GLUED)
+    plate = trimesh.creation.box([30.0, 30.0, 3.0])
+    plate.apply_translation([0.0, 0.0, -1.5])
+    plate.export(tmp_path / "plate.stl")
+    argv = [src, "--machine", "sinumerik-vector", "--head", revolved_head(tmp_path), "--part", tmp_path / "plate.stl",
+            "--bead-radius", "0"] + (["--check"] if check else [])
+    status, out, err = run_main(argv, capsysbinary)
+    assert status in (0, 1) and "internal error" not in err, err
+    assert "1 motion block was not checked" in err or "blocks were not checked" in err, err
+    if check:
+        assert out == GLUED
+
+
+def test_the_rotation_of_a_zero_or_nan_vector_is_nan():
+    from ncfix.geometry.frames import minimal_rotation, normalize
+
+    r = minimal_rotation(np.array([[0.0, 0, 1], [0, 0, 0], [np.nan, 0.1, 0.9], [1, 0, 0]]))
+    assert np.allclose(r[0], np.eye(3)) and np.isnan(r[1]).all() and np.isnan(r[2]).all()
+    assert np.allclose(r[3] @ [0, 0, 1], [1, 0, 0])
+    n = normalize(np.array([[0.0, 0, 0], [np.nan, 1, 0], [0, 0, 2]]))
+    assert (n[0] == 0).all() and np.isnan(n[1]).all() and (n[2] == [0, 0, 1]).all()
+
+
 # -- item 4: streams and files -----------------------------------------------------------------
 @pytest.mark.parametrize(
     "redirect, message",
@@ -361,6 +395,23 @@ def test_non_finite_values_are_errors_naming_the_line(tmp_path, capsysbinary, bl
         "correct the value in the program; ncfix never guesses a position")
     assert err == f"ncfix: error: {src}:3: {message} ({fix})\n"
     assert not out.exists()
+
+
+@pytest.mark.parametrize("lines, line, where", [
+    (["G1 X2 Y99999999999999999999 Z0"], 3, "Y position 1e+20 mm"),  # 20 digits: the full reader
+    (["G1 X2 Y999999999999999 Z0"], 3, "Y position 1e+15 mm"),  # 15 digits: still a plain line
+    (["G1 X2 Y0 Z0"] * 9 + ["G1 Y-99999999999999"], 12, "Y position -1e+14 mm"),  # in a run of plain lines
+    (["G20", "G1 X50000"], 4, "X position 1.27e+06 mm"),  # inches
+    (["G91", "G1 X600000", "G1 X600000"], 5, "X position 1.2e+06 mm"),  # incremental, in sum
+])
+def test_a_position_beyond_any_travel_is_an_error_naming_the_line(tmp_path, capsysbinary, lines, line, where):
+    """Found by test_properties: a 10^20 mm move was to be sampled pitch by pitch (an overflow)."""
+    src = tmp_path / "far.nc"
+    src.write_bytes(b"G21\nG1 X1 Y1 Z1 I0 J0 K1\n" + "\n".join(lines).encode() + b"\nM30\n")
+    status, out, err = run_main([src, "-q", "--check"], capsysbinary)
+    assert status == 2
+    assert err == (f"ncfix: error: {src}:{line}: the {where} is beyond any machine's travel (more than 1 km from "
+                   "the origin) (correct the value in the program, or its units: G20 inches, G21 mm)\n")
 
 
 def test_an_arc_centre_that_is_not_a_number_is_an_error_naming_the_line(tmp_path, capsysbinary):

@@ -25,10 +25,14 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _rodrigues(a, b, out):  # pragma: no cover - compiled
     """out[i] = I + K + K² / (1 + c), K the cross-product matrix of â × b̂ and c = â · b̂; a half
-    turn 2uuᵀ − I about u ⊥ â (u from â × x̂, or â × ŷ when â is within 25.8° of x̂) when opposite."""
+    turn 2uuᵀ − I about u ⊥ â (u from â × x̂, or â × ŷ when â is within 25.8° of x̂) when opposite;
+    NaN where either direction is zero or not a number."""
     for i in range(a.shape[0]):
         na = np.sqrt(a[i, 0] * a[i, 0] + a[i, 1] * a[i, 1] + a[i, 2] * a[i, 2])
         nb = np.sqrt(b[i, 0] * b[i, 0] + b[i, 1] * b[i, 1] + b[i, 2] * b[i, 2])
+        if not (na > 0.0 and nb > 0.0):  # a zero or NaN direction has no rotation: NaN, never a raise
+            out[i, :, :] = np.nan
+            continue
         ax, ay, az = a[i, 0] / na, a[i, 1] / na, a[i, 2] / na
         bx, by, bz = b[i, 0] / nb, b[i, 1] / nb, b[i, 2] / nb
         c = ax * bx + ay * by + az * bz
@@ -105,10 +109,11 @@ def half_turn_direction(a: np.ndarray) -> np.ndarray:
 
 
 def normalize(v: np.ndarray) -> np.ndarray:
-    """Unit vectors along the rows of ``v`` (..., 3); zero rows stay zero."""
+    """Unit vectors along the rows of ``v`` (..., 3); zero rows stay zero, NaN rows NaN."""
     v = np.asarray(v, dtype=np.float64)
     norm = np.linalg.norm(v, axis=-1, keepdims=True)
-    return np.divide(v, norm, out=np.zeros_like(v), where=norm > 0)
+    out = np.divide(v, norm, out=np.zeros_like(v), where=norm > 0)
+    return np.where(np.isnan(norm), np.nan, out)
 
 
 def angle_between_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:

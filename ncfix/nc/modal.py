@@ -36,6 +36,9 @@ MM_PER_INCH = 25.4
 _NON_MOTION_G = {4.0, 10.0, 28.0, 30.0, 53.0, 92.0, 28.1, 30.1, 92.1, 92.2, 92.3}
 _HEIDENHAIN_LINEAR = {"L", "LN"}
 _MIN_RUN = 8  # shorter runs of plain lines are cheaper one by one than as arrays
+# A position farther than this from the origin (mm) is a typo or a unit mistake, not a machine's
+# travel: `Y99999999999999999999` would otherwise be checked pitch by pitch (10^20 samples).
+TRAVEL_LIMIT_MM = 1.0e6
 _HEIDENHAIN_ARC = {"C", "CR", "CT", "CP"}
 # Words of an arc: centre offsets and radius (Siemens CR=).
 _ARC_WORDS = {"I", "J", "K", "R", "CR"}
@@ -194,6 +197,11 @@ class Interpreter:
                 positions[:, idx] = self.words[idx] + np.cumsum(np.nan_to_num(column, nan=0.0))
             else:
                 positions[:, idx] = _ffill(column, self.words[idx])
+            if kind == 1:
+                far = np.abs(positions[:, idx]) > TRAVEL_LIMIT_MM
+                if far.any():
+                    row = int(np.flatnonzero(far)[0])
+                    raise self._beyond_travel(chunk.first_lineno + a + row, letter, float(positions[row, idx]))
         if self._vector_order:
             vec_cols = [cols[letter] for letter in self._vector_order]
             comps = values[:, vec_cols]
@@ -250,6 +258,11 @@ class Interpreter:
         """``Xnan``, ``Kinf``, ``X1e999``: float() reads them, no machine can go there."""
         return self._fail(lineno, f"the {letter} word '{letter}{text}' is not a finite number",
                           "correct the value in the program; ncfix never guesses a position")
+
+    def _beyond_travel(self, lineno: int, letter: str, value_mm: float) -> ProgramError:
+        return self._fail(lineno, f"the {letter} position {value_mm:.6g} mm is beyond any machine's travel "
+                          f"(more than {TRAVEL_LIMIT_MM / 1e6:g} km from the origin)",
+                          "correct the value in the program, or its units: G20 inches, G21 mm")
 
     def _zero_vector(self, lineno: int) -> ProgramError:
         return self._fail(lineno, "the tool vector is (0, 0, 0)", "give a non-zero vector; a vertical tool is 0, 0, 1")
@@ -404,8 +417,8 @@ class Interpreter:
             for idx, text in given.items():
                 letter = self.letters[idx]
                 is_vector = letter in self.vector_letters
-                if is_vector and arc:
-                    continue  # I J K on an arc are its centre
+                if is_vector and arc and letter in _ARC_WORDS:
+                    continue  # I J K on an arc are its centre (Siemens A3= B3= C3= orient it)
                 if text is None:
                     new[idx] = NAN
                     continue
@@ -429,6 +442,9 @@ class Interpreter:
                     new[idx] = new[idx] + value
                 else:
                     new[idx] = value
+            for idx in given:
+                if idx in self.linear_index and abs(new[idx]) > TRAVEL_LIMIT_MM:
+                    raise self._beyond_travel(lineno, self.letters[idx], new[idx])
             if vector_given:
                 comps = []
                 for letter in self.profile.kinematics.orientation_letters:
