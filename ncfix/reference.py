@@ -335,9 +335,11 @@ def label_program(
     pose is checked against
     the beads laid before it, including the move that ends at it, as spheres ``bead_spacing_mm``
     apart along the path through P, each ``bead_drop_mm`` below it along the tool axis; a move
-    along the axis (``deposit.axial_moves``) lays one, at its lower end.
+    along the axis (``deposit.axial_moves``) or one that ploughs through its own extrudate
+    (``plough.ploughing_moves``) lays one, at its lower end.
     """
     from ncfix.collision.deposit import axial_moves
+    from ncfix.collision.plough import ploughing_moves
     from ncfix.nc.modal import Interpreter
     from ncfix.profiles import load_profile
 
@@ -360,6 +362,7 @@ def label_program(
         if sel.any():
             p[sel], n[sel], r[sel] = profile.kinematics.forward(words[sel], tcp=bool(flag))
     has_e = not np.isnan(chunk.e_delta).all()
+    head_triangles = np.asarray(head.triangles, dtype=np.float64)
     beads = np.zeros((0, 3))
     out = []
     previous = None
@@ -373,7 +376,9 @@ def label_program(
             deposits = feed
         if deposits and previous is not None and bead_radius_mm > 0:
             n0, n1 = n[row - 1], n[row]
-            if axial_moves(previous[None], p[row][None], n0[None], n1[None])[0]:
+            ploughs = ploughing_moves(head_triangles, (previous + standoff_mm * n0)[None],
+                                      (p[row] + standoff_mm * n1)[None], r[row - 1][None], r[row][None])[0]
+            if axial_moves(previous[None], p[row][None], n0[None], n1[None])[0] or ploughs:
                 low = row if float((p[row] - previous) @ (n0 + n1)) < 0 else row - 1
                 laid = (p[low] - bead_drop_mm * n[low])[None]
             else:

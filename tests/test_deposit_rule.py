@@ -32,11 +32,12 @@ HEAD = SAMPLES / "deposition_head.stl"
 
 
 def laid_beads(text: str, *, standoff: float = 0.0, width: float = 0.8, height: float = 0.8,
-               pitch: float = 0.5) -> np.ndarray:
-    """The bead centres (m, 3) an ijk program lays, in laying order (as the check stage lays them)."""
+               pitch: float = 0.5, head: trimesh.Trimesh | None = None) -> np.ndarray:
+    """The bead centres (m, 3) an ijk program lays, in laying order (as the check stage lays them);
+    with ``head`` (head frame) the moves that plough through their extrudate are found too."""
     profile = load_profile("ijk")
     bead = BeadShape.stated(0.5 * width, width, height, standoff)
-    checker = SimpleNamespace(bead_radius_mm=bead.radius_mm, bead_drop_mm=bead.drop_mm)
+    checker = SimpleNamespace(bead_radius_mm=bead.radius_mm, bead_drop_mm=bead.drop_mm, head=head)
     path = PathChecker(checker, profile, standoff, pitch)
     options = Options(standoff=standoff, pitch=pitch)
     rows_of = MotionRows(path, profile, options)
@@ -86,6 +87,56 @@ def test_moves_within_the_angle_of_the_axis_deposit_at_their_lower_end(angle_deg
         np.testing.assert_allclose(beads[0], [0.0, 0.0, 9.7], atol=1e-6)
         np.testing.assert_allclose(beads[-1], bottom, atol=1e-6)
         assert np.linalg.norm(np.diff(beads, axis=0), axis=1).max() <= 0.25 + 1e-9
+
+
+def nozzle(tip_radius: float = 0.5, half_angle_deg: float = 57.5, gap: float = 0.0) -> trimesh.Trimesh:
+    """A revolved nozzle (head frame): a flat tip of ``tip_radius`` (``gap`` above the tip point),
+    a cone widening at ``half_angle_deg`` from the axis to radius 6, then a body to 30 mm."""
+    rise = (6.0 - tip_radius) / math.tan(math.radians(half_angle_deg))
+    profile = [[0.0, gap], [tip_radius, gap], [6.0, gap + rise], [6.0, 30.0], [0.0, 30.0]]
+    return trimesh.creation.revolve(np.array(profile), sections=96)
+
+
+@pytest.mark.parametrize(("angle_deg", "ploughs"), [(0.0, True), (12.0, True), (40.0, True), (50.0, True),
+                                                    (70.0, False), (90.0, False), (180.0, False)])
+def test_a_move_whose_nozzle_passes_through_its_extrudate_lays_it_at_the_lower_end(angle_deg, ploughs):
+    """A 2 mm move at angle_deg from straight down under a nozzle with a flat tip 1 mm across and a
+    cone widening at 45° from the axis: where the tip's earlier positions lie inside the nozzle
+    (within the cone, and at 50° too: over 2 mm the flat tip still covers them, the path leaves
+    the nozzle only after 4.07 mm) one bead, at the bottom; at 70° the path leaves the nozzle
+    after 0.84 mm, and the material stays along the move, as it does for any move across the
+    axis or a lift (180°)."""
+    a = math.radians(angle_deg)
+    x, z = 2.0 * math.sin(a), 10.0 - 2.0 * math.cos(a)
+    head = nozzle(half_angle_deg=45.0)
+    beads = laid_beads(program(f"G1 X{x:.6f} Z{z:.6f} E2.0 F600"), height=0.6, head=head)
+    lower = [x, 0.0, min(z, 10.0) - 0.3]
+    if ploughs:
+        np.testing.assert_allclose(beads, [lower], atol=1e-6)
+    elif angle_deg < 180.0:
+        assert len(beads) >= 2.0 / 0.25 + 1  # laid along the move
+    else:
+        assert len(beads) == 1  # a lift along the axis: the 10° rule, at its lower end (the start)
+
+
+def test_the_plough_test_is_the_head_s_shape():
+    """Against points sampled along each segment (trimesh's containment): the same answer, and a
+    nozzle modelled from 0.3 mm above its tip never ploughs (its tip's path starts outside it)."""
+    from ncfix.collision.plough import ploughing_moves
+
+    rng = np.random.default_rng(7)
+    head = nozzle(half_angle_deg=50.0)
+    d = rng.normal(size=(400, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d *= rng.uniform(0.2, 8.0, size=(400, 1))
+    eye = np.repeat(np.eye(3)[None], 400, axis=0)
+    got = ploughing_moves(np.asarray(head.triangles), d, np.zeros((400, 3)), eye, eye)
+    s = np.linspace(0.0, 1.0, 161)[1:]
+    inside = head.contains((s[None, :, None] * d[:, None, :]).reshape(-1, 3)).reshape(400, len(s)).all(axis=1)
+    assert got.sum() > 30 and (~got).sum() > 30
+    assert (got == inside).all()
+    lifted = ploughing_moves(np.asarray(nozzle(gap=0.3).triangles), d, np.zeros((400, 3)), eye, eye)
+    assert not lifted.any()
 
 
 def test_beads_hang_below_the_tip_along_a_tilted_axis_and_sit_on_p_with_a_standoff():

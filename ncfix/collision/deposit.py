@@ -10,8 +10,9 @@ program; a program whose first E word comes later is read with the other rules.
 Beads are laid along the deposited path, sampled at most half a pitch apart (each depositing move
 from its start to its end point, both included), as the nozzle lays them (``BeadShape``): below
 the tip along the tool axis. A move within AXIAL_DEG of the tool axis (a plunge or a lift that
-extrudes) lays its material at its lower end only: what leaves the nozzle while it runs along its
-own axis ends under it, not in a column along the move. The checker holds each bead as a sphere
+extrudes), or one whose nozzle ploughs through its own extrudate (``ncfix.collision.plough``),
+lays its material at its lower end only: what leaves the nozzle while it runs along its own axis
+ends under it, not in a column along the move. The checker holds each bead as a sphere
 (``BeadShape.radius_mm``) that contains the stated bead.
 
 ``BeadStore`` keeps them twice:

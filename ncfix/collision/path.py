@@ -32,6 +32,7 @@ import numpy as np
 
 from ncfix.collision.checker import Checker, rotation_angle
 from ncfix.collision.deposit import BeadStore, axial_moves, bead_samples
+from ncfix.collision.plough import ploughing_moves
 from ncfix.geometry.frames import half_turn_direction
 from ncfix.kinematics.tool_vector import ToolVector
 
@@ -281,7 +282,7 @@ class PathChecker:
             sel = di[arcs[di]]
             length[arcs[di]] = arc_extent(ws[sel][:, self.xyz], moves.w_end[sel][:, self.xyz], moves.arc[sel])[1]
         counts, tb = bead_samples(Ps[di], Pe[di], 0.5 * self.pitch_mm, length_mm=length)
-        axial = axial_moves(Ps[di], Pe[di], Ns[di], Ne[di]) & ~arcs[di]
+        axial = (axial_moves(Ps[di], Pe[di], Ns[di], Ne[di]) | self._ploughing(moves, ws, di)) & ~arcs[di]
         if axial.any():
             # The lower end along the axis: the end point of a plunge (P·N falls), else the start.
             lower = np.where(np.einsum("ij,ij->i", Pe[di] - Ps[di], Ns[di] + Ne[di]) < 0, 1.0, 0.0)
@@ -303,6 +304,21 @@ class PathChecker:
                 pend -= drop * nb
         kb = np.maximum(np.ceil(tb * m[brow] - 1e-9), 1).astype(np.int64)
         return pend, seq0 + first[brow] + kb - 1
+
+
+    def _ploughing(self, moves: Moves, ws: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """(len(rows),) bool: the moves whose nozzle ploughs through what they extrude
+        (``plough.ploughing_moves``: the head's shape decides; their material ends at the lower end)."""
+        tris = getattr(self, "_head_triangles", None)
+        if tris is None:
+            head = getattr(self.checker, "head", None)  # a checker for the beads alone has no head
+            if head is None:
+                return np.zeros(len(rows), dtype=bool)
+            tris = self._head_triangles = np.asarray(head.triangles, dtype=np.float64)
+        Ps, Ns, Rs = self.forward(ws[rows], moves.tcp[rows])
+        Pe, Ne, Re = self.forward(moves.w_end[rows], moves.tcp[rows])
+        h = self.standoff_mm
+        return ploughing_moves(tris, Ps + h * Ns, Pe + h * Ne, Rs, Re)
 
 
 class Refiner:
