@@ -11,13 +11,32 @@ ends, long lines and values no controller accepts (``nan``, ``1e999``, ``1.2.3``
 - without ``--head`` the output is the input; with it, the output has the input's lines.
 
 The command line runs in this process (``ncfix.cli.main`` with standard streams swapped), so
-about 1,100 examples take a few minutes; derandomized, so every run tries the same examples.
-Most run without a head; a fraction with a small head and plate, and a set of broken meshes.
+about 1,100 examples take a few minutes. Most run without a head; a fraction with a small head and
+plate, and a set of broken meshes.
+
+Every run on every machine tries the same examples in the same order, so a failure in CI is a
+failure here:
+
+- the seed is the test's own source (``derandomize``, no example database), and hypothesis is
+  pinned in the ``test`` extra (another release draws other examples from the same seed);
+- hypothesis's "local constants" are switched off (``same_examples_everywhere``): it mixes into
+  its draws the numbers and strings written in the source of every imported module outside
+  site-packages, so the examples changed with how ncfix is installed (editable here, not in CI),
+  with which modules earlier test files had imported, and with any literal edited in ncfix;
+- the strategies draw from lists and ranges written here (no set or dict order) and compute with
+  ``math`` (numpy's vectorised sine and cosine depend on the CPU); the default text alphabet is
+  every code point but surrogates, whatever the Python's Unicode version;
+- the module runs with a cache folder of its own, empty when it starts, and a working folder of
+  its own, whatever ran before.
+
+To hunt with other examples, run a copy with ``@seed(k)`` or ``derandomize=False`` and
+``--hypothesis-seed=k``; never commit it.
 """
 
 from __future__ import annotations
 
 import io
+import math
 import os
 import sys
 import tempfile
@@ -29,6 +48,7 @@ import pytest
 import trimesh
 from hypothesis import HealthCheck, Phase, event, given, settings
 from hypothesis import strategies as st
+from hypothesis.internal.conjecture import providers
 
 from ncfix.cli import main
 from ncfix.profiles import builtin_names, load_profile
@@ -119,8 +139,8 @@ def unit_vector_text(draw, profile, special=0.05):
     else:
         tilt = draw(st.floats(0, 40 if kind == "tilted" else 180))
         azimuth = draw(st.floats(-180, 180))
-        t, a = np.radians(tilt), np.radians(azimuth)
-        v = (np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t))
+        t, a = math.radians(tilt), math.radians(azimuth)
+        v = (math.sin(t) * math.cos(a), math.sin(t) * math.sin(a), math.cos(t))
     letters = profile.kinematics.orientation_letters
     words = [word(profile, letter, f"{c:.6f}") for letter, c in zip(letters, v)]
     if kind == "partial":
@@ -252,6 +272,21 @@ def workdir():
             os.chdir(old)
 
 
+@pytest.fixture(autouse=True, scope="module")
+def same_examples_everywhere(workdir):
+    """No local constants in hypothesis's draws, and an empty cache folder of this module's own:
+    the same examples, with the same outcomes, on every machine and in every run."""
+    assert callable(providers._get_local_constants)  # fails loudly if hypothesis renames it
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(providers, "_get_local_constants", providers.Constants)
+        patch.setenv("NCFIX_CACHE", str(workdir / "cache"))
+        providers.CONSTANTS_CACHE.cache.clear()  # pools built with another test file's constants
+        try:
+            yield
+        finally:
+            providers.CONSTANTS_CACHE.cache.clear()
+
+
 @settings(max_examples=600, **COMMON)
 @given(case=profile_and_program(), check=st.booleans(), quiet=st.booleans(), via_stdin=st.booleans(),
        to_file=st.booleans(), other_machine=st.sampled_from([None] * 4 + sorted(PROFILES)))
@@ -336,13 +371,14 @@ def mesh_bytes(draw):
     if kind == "garbage":
         return draw(st.binary(min_size=1, max_size=300)), suffix
     points = np.array(draw(st.lists(st.tuples(*[st.floats(-6, 6)] * 3), min_size=4, max_size=12)))
+    size = draw(st.floats(0.5, 8))  # drawn whether used or not: what follows does not depend on qhull
     try:
         with np.errstate(all="ignore"):
             mesh = trimesh.convex.convex_hull(points)
     except Exception:  # flat or repeated points: no hull
         mesh = trimesh.creation.box([4.0, 4.0, 4.0])
     if kind == "box" or len(mesh.faces) < 4:
-        mesh = trimesh.creation.box([draw(st.floats(0.5, 8))] * 3)
+        mesh = trimesh.creation.box([size] * 3)
     vertices, faces = mesh.vertices.copy(), mesh.faces.copy()
     if kind == "open":
         faces = faces[1:]
