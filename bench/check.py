@@ -173,9 +173,14 @@ def one(kind: str, size: int) -> dict:
         pick = np.random.default_rng(0).choice(len(C), size=min(3000, len(C)), replace=False)
         from scipy.spatial import cKDTree
 
+        from ncfix.reference import ExactReference
+
+        ref = ExactReference(checker.head, {p.name: p.mesh for p in checker.exact.parts},
+                             tip_allowance_mm=checker.tip_allowance_mm,
+                             open_parts={p.name for p in checker.exact.parts if not p.closed})
         t = time.perf_counter()
         for i in pick:
-            checker.reference.collides(C[i], R[i])
+            ref.collides(C[i], R[i])
         out["exact parts"] = (time.perf_counter() - t) * len(C) / len(pick)
         B = np.concatenate([b for b, _ in laid]) if laid else np.zeros((0, 3))
         bseq = np.concatenate([q for _, q in laid]) if laid else np.zeros(0, dtype=np.int64)
@@ -187,7 +192,7 @@ def one(kind: str, size: int) -> dict:
                 continue
             near = np.asarray(tree.query_ball_point(C[i], reach), dtype=np.int64)
             near = near[bseq[near] <= i]
-            checker.reference.bead_collides(C[i], R[i], B[near], options.bead_radius)
+            ref.bead_collides(C[i], R[i], B[near], options.bead_radius)
         out["exact"] = out["exact parts"] + (time.perf_counter() - t) * len(C) / len(pick)
         if size <= 1000:
             from ncfix.reference import label_program

@@ -12,6 +12,7 @@ from typing import IO, TYPE_CHECKING, Any, BinaryIO, Union
 
 from ncfix.config import OPTION_NAMES, Options, build_options, load_config
 from ncfix.errors import ConfigError, InternalError, NcfixError
+from ncfix.fileio import Input, Output, atomic_output, atomic_write_text
 
 if TYPE_CHECKING:
     from ncfix.report import Report
@@ -79,7 +80,6 @@ def internal_errors() -> Iterator[None]:
 
 
 def _process_options(src: Source, dst: Source, options: Options, progress: Progress | None) -> "Report":
-    from ncfix.fileio import Output, atomic_output
     from ncfix.pipeline import run
 
     for path in (dst if _is_path(dst) else None, options.report, options.diff, options.html):
@@ -102,8 +102,6 @@ def _process_options(src: Source, dst: Source, options: Options, progress: Progr
 
 
 def _write_extras(report: "Report", options: Options, source: str, target: str) -> None:
-    from ncfix.fileio import atomic_write_text
-
     if options.report:
         report.write_json(options.report)
     if options.diff:
@@ -112,7 +110,7 @@ def _write_extras(report: "Report", options: Options, source: str, target: str) 
         else:
             report.write_diff(options.diff, source, target)
     if options.html:
-        from ncfix.html import render_html
+        from ncfix.report.html import render_html
 
         _add_part_previews(report, options)
         atomic_write_text(options.html, render_html(report))
@@ -136,8 +134,6 @@ def _add_part_previews(report: "Report", options: Options) -> None:
 
 @contextmanager
 def _input(src: Source) -> Iterator[tuple[BinaryIO, str]]:
-    from ncfix.fileio import Input
-
     if not _is_path(src):
         stream = _binary(src, "src")
         name = _name(stream, "<stream>")

@@ -41,7 +41,8 @@ import time
 import zipfile
 import zlib
 from pathlib import Path
-from typing import BinaryIO, Callable, Iterable, TypeVar
+from collections.abc import Callable, Iterable
+from typing import BinaryIO, TypeVar
 
 import numpy as np
 
@@ -79,11 +80,9 @@ def version(package: str) -> str:
         return "absent"
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def fingerprint(*modules: str) -> str:
     """sha256 of the source files of these modules (dotted names), read once per process."""
-    import importlib
-
     digest = hashlib.sha256()
     for name in modules:
         digest.update(name.encode() + b"\0")

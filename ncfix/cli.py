@@ -15,10 +15,12 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from ncfix import __version__
+from ncfix.api import process_options
 from ncfix.config import (DEVICES, OPTION_NAMES, PIVOTS, STRATEGIES, Options, build_options, confine_outputs,
                           load_config)
 from ncfix.errors import InternalError, NcfixError
+from ncfix.fileio import Output, remove_temporary_files
+from ncfix.version import __version__
 
 EXIT_OK, EXIT_COLLISIONS, EXIT_USAGE = 0, 1, 2
 EXIT_BROKEN_PIPE = 141  # what a shell reports for a filter whose reader went away (128 + SIGPIPE)
@@ -152,8 +154,6 @@ def _signals_end_the_run() -> Iterator[None]:
     """SIGTERM and SIGHUP end the run as an exception, so no temporary file of ``-o``,
     ``--report`` … is left behind; the exit status is then the shell's 128 + N (143, 129).
     Only in the main thread (Python allows handlers nowhere else); the old handlers come back."""
-    from ncfix.fileio import remove_temporary_files
-
     previous: dict[int, Any] = {}
 
     def handler(signum: int, frame: Any) -> None:
@@ -184,8 +184,6 @@ def _stderr(text: str) -> None:
 
 def _list_machines() -> int:
     from ncfix.profiles import builtin_names, load_profile
-
-    from ncfix.fileio import Output
 
     out = Output(_stdout(), "standard output")
     for name in builtin_names():
@@ -232,14 +230,12 @@ def _options(args: argparse.Namespace) -> Options:
 
 
 def _run(args: argparse.Namespace, options: Options) -> int:
-    from ncfix.api import process_options
-
     src = _stdin() if args.input == "-" else args.input
     dst = args.output if args.output else _stdout()
     with _progress(src, enabled=not options.quiet) as progress:
         report = process_options(src, dst, options, progress=progress)
     if not options.quiet and sys.stderr is not None:
-        from ncfix.summary import print_summary
+        from ncfix.report.summary import print_summary
 
         # Which settings were used, said once the run has succeeded: an error stays one line (and an
         # error in the config names the file itself).

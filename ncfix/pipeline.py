@@ -5,13 +5,16 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable, Iterator
 from itertools import islice
+from pathlib import Path
 from typing import BinaryIO, Protocol
 
 import numpy as np
 
 from ncfix.config import Options
+from ncfix.errors import ConfigError
 from ncfix.nc.chunk import Chunk
 from ncfix.nc.modal import Interpreter
+from ncfix.nc.orientation import resolve_auto
 from ncfix.nc.writer import Writer
 from ncfix.profiles import Profile, load_profile
 from ncfix.report import Report
@@ -140,12 +143,10 @@ def build_stages(options: Options, profile: Profile, report: Report, box=None) -
     to what the head can reach from them."""
     if options.head is None:
         return []
-    from pathlib import Path
-
     from ncfix.collision.checker import Checker, resolve_device
     from ncfix.collision.deposit import BeadShape
-    from ncfix.collision.stage import CheckStage
     from ncfix.collision.head import cached_head_model
+    from ncfix.collision.stage import CheckStage
     from ncfix.geometry.mesh import load_head
 
     resolve_device(options.device)  # a missing GPU is said before the meshes are read
@@ -153,8 +154,6 @@ def build_stages(options: Options, profile: Profile, report: Report, box=None) -
     report.warnings.extend(head.warnings)
     height = float(head.mesh.vertices[:, 2].max())  # head frame: the tip at 0, the axis +Z
     if options.bead_radius > 0 and options.tip_allowance >= height:
-        from ncfix.errors import ConfigError
-
         raise ConfigError(f"--tip-allowance {options.tip_allowance:g} mm is not below the top of the head "
                           f"({height:.4g} mm above its tip): no part of it would be checked against deposited "
                           "material", fix="use a smaller --tip-allowance, or check the head mesh and --head-tip")
@@ -177,10 +176,11 @@ def build_stages(options: Options, profile: Profile, report: Report, box=None) -
                       device=options.device, part_bounds_mm=reach_box, bead_drop_mm=bead.drop_mm)
     if options.check:
         return [CheckStage(checker, profile, options, report, placed_parts=loaded_parts)]
-    from ncfix.correct.solve import make_strategy
+    from ncfix.correct import strategies
     from ncfix.correct.stage import CorrectStage
 
-    return [CorrectStage(checker, profile, options, report, make_strategy(options), placed_parts=loaded_parts)]
+    return [CorrectStage(checker, profile, options, report, strategies.make_strategy(options),
+                         placed_parts=loaded_parts)]
 
 
 def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>",
@@ -194,8 +194,6 @@ def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>",
     started = time.perf_counter()
     note = None
     if options.machine == AUTO:
-        from ncfix.nc.orientation import resolve_auto
-
         choice, src = resolve_auto(src, source)
         profile, note = choice.profile, choice.note
     else:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import weakref
 from pathlib import Path
 
 import pytest
@@ -51,3 +52,18 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "long" in item.keywords:
             item.add_marker(skip)
+
+
+_ORACLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def oracle(checker):
+    """The tests' exact reference (``ncfix.reference.ExactReference``) for a checker's head, parts
+    and tip allowance, made once per checker (imported here: most tests never need it)."""
+    from ncfix.reference import ExactReference
+
+    if checker not in _ORACLES:
+        _ORACLES[checker] = ExactReference(checker.head, {p.name: p.mesh for p in checker.exact.parts},
+                                           tip_allowance_mm=checker.tip_allowance_mm,
+                                           open_parts={p.name for p in checker.exact.parts if not p.closed})
+    return _ORACLES[checker]

@@ -21,7 +21,7 @@ from ncfix.collision import head as head_module
 from ncfix.collision import proximity as proximity_module
 from ncfix.collision.grid import build_distance_grid, cached_distance_grid
 from ncfix.collision.head import build_head_model, build_sphere_tree, cached_head_model, cached_sphere_tree
-from ncfix.geometry.near import NearSurface, cached_near_surface
+from ncfix.collision.near import NearSurface, cached_near_surface
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 CASES = Path(__file__).parent / "cases" / "fix"

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import oracle
 from ncfix.collision.checker import Checker, _balls_box
 from ncfix.collision.stage import CheckStage
 from ncfix.collision.deposit import BeadStore, DepositRule, choose_rule, depositing
@@ -98,7 +99,7 @@ def test_bathtub_273_no_pose_the_reference_finds_colliding_is_missed(checker, me
     P, N = bathtub_path(273, mold)
     C, R = P + 6.0 * N, rotation_from_z(N)
     flagged = checker.check_parts(C, R, np.zeros(len(C)))[:, 0]
-    truth = np.array([checker.reference.collides(c, r) for c, r in zip(C, R)])
+    truth = np.array([oracle(checker).collides(c, r) for c, r in zip(C, R)])
     misses, rate = _rates("bathtub 273", flagged, truth)
     assert truth.sum() > 30
     assert misses == 0
@@ -111,7 +112,7 @@ def test_bathtub_5000_subset_no_misses(checker, meshes):
     P, N = P[::2], N[::2]
     C, R = P + 6.0 * N, rotation_from_z(N)
     flagged = checker.check_parts(C, R, np.zeros(len(C)))[:, 0]
-    truth = np.array([checker.reference.collides(c, r) for c, r in zip(C, R)])
+    truth = np.array([oracle(checker).collides(c, r) for c, r in zip(C, R)])
     misses, rate = _rates("bathtub 5000 (every 2nd)", flagged, truth)
     assert misses == 0
     assert rate < 0.02
@@ -138,7 +139,7 @@ def test_random_poses_near_the_mold_no_misses(checker, meshes, n, seed):
     _, mold = meshes
     C, R = _random_part_poses(mold, n, seed=seed)
     flagged = checker.check_parts(C, R, np.zeros(len(C)))[:, 0]
-    truth = np.array([checker.reference.collides(c, r) for c, r in zip(C, R)])
+    truth = np.array([oracle(checker).collides(c, r) for c, r in zip(C, R)])
     misses, rate = _rates(f"{n} random poses near the mold", flagged, truth)
     assert misses == 0
     assert rate < 0.02
@@ -150,7 +151,7 @@ def test_free_poses_are_free_and_fast_path_errs_toward_collides(checker, meshes)
     _, mold = meshes
     C, R = _random_part_poses(mold, 1500, seed=17)
     free = checker.free_poses(C, R, np.arange(len(C)), BeadStore(1.0), np.zeros((0, 3)), np.zeros(0, dtype=np.int64))
-    truth = np.array([checker.reference.collides(c, r) for c, r in zip(C, R)])
+    truth = np.array([oracle(checker).collides(c, r) for c, r in zip(C, R)])
     assert not (free & truth).any()
     refused = int((~free & ~truth).sum())
     print(f"\nfree_poses: {int(free.sum())} free, {refused} free poses refused of {int((~truth).sum())}")
@@ -179,7 +180,7 @@ def test_a_margin_is_honoured_exactly(checker, meshes, margin_mm):
     _, mold = meshes
     C, R = _random_part_poses(mold, 300, seed=3)
     flagged = checker.check_parts(C, R, np.full(len(C), margin_mm))[:, 0]
-    values, _ = checker.reference.clearances(C, R)
+    values, _ = oracle(checker).clearances(C, R)
     truth = values < margin_mm
     ok = np.abs(values - margin_mm) > 1e-6  # the depth of a hit is a lower bound; only the sign is exact
     assert 0 < truth[ok].sum() < ok.sum()
@@ -251,7 +252,7 @@ def _deposit_case(bead_checker, n: int, seed: int):
     C, R = _random_bead_poses(n, seed)
     hit, _ = bead_checker.check_deposit(C, R, np.zeros(n), np.arange(n), store, np.zeros((0, 3)),
                                         np.zeros(0, dtype=np.int64))
-    truth = _exact_bead_clearance(bead_checker.reference, C, R, beads, 1.0) < 0
+    truth = _exact_bead_clearance(oracle(bead_checker), C, R, beads, 1.0) < 0
     return hit, truth
 
 
@@ -325,7 +326,7 @@ def test_retired_beads_are_still_seen_conservatively(bead_checker):
     beads = _wall_beads(0.5)
     n = 2000
     C, R = _random_bead_poses(n, seed=5)
-    truth = _exact_bead_clearance(bead_checker.reference, C, R, beads, 1.0) < 0
+    truth = _exact_bead_clearance(oracle(bead_checker), C, R, beads, 1.0) < 0
     store = BeadStore(1.0, exact_max=512)
     store.field(PITCH)
     for part in np.array_split(beads, 20):  # laid in runs, as windows lay them
@@ -427,7 +428,7 @@ def test_stamping_gives_every_cell_the_least_value_of_the_chords_that_reach_it()
 def test_beads_laid_after_a_pose_are_not_seen_by_it(bead_checker):
     beads = _wall_beads(0.5)
     C, R = _random_bead_poses(400, seed=9)
-    truth = _exact_bead_clearance(bead_checker.reference, C, R, beads, 1.0) < 0
+    truth = _exact_bead_clearance(oracle(bead_checker), C, R, beads, 1.0) < 0
     assert truth.any()
     store = BeadStore(1.0)
     # All beads pending with a sequence number after every pose: nothing is seen.
@@ -491,7 +492,7 @@ def test_bathtub_program_end_to_end_flags_every_colliding_block(checker, meshes)
     lines = data.decode().splitlines(keepends=True)
     feed_lines = [i + 1 for i, line in enumerate(lines) if " X" in line][1:-1]  # approach, retract
     assert len(feed_lines) == len(P)
-    truth = np.array([checker.reference.collides(c, r) for c, r in zip(P + 6 * N, rotation_from_z(N))])
+    truth = np.array([oracle(checker).collides(c, r) for c, r in zip(P + 6 * N, rotation_from_z(N))])
     truth_lines = {feed_lines[i] for i in np.nonzero(truth)[0]}
     assert truth_lines <= flagged
     extra = flagged - truth_lines
@@ -566,7 +567,7 @@ def test_deposit_workload_collides_only_with_what_it_printed(bead_checker):
         beads.append(a + t * (b - a))
     beads = np.concatenate(beads)
     C, R = P + 6 * N, rotation_from_z(N)
-    clear = _exact_bead_clearance(bead_checker.reference, C[wall:], R[wall:], beads, 1.0)
+    clear = _exact_bead_clearance(oracle(bead_checker), C[wall:], R[wall:], beads, 1.0)
     truth = {feed_lines[wall + i] for i in np.nonzero(clear < 0)[0]}
     assert truth, "the workload must collide"
     assert truth <= flagged
@@ -644,7 +645,7 @@ def test_rotary_profile_program_is_checked_through_forward_kinematics(checker, m
     chunk = next(read_chunks(io.BytesIO(data), Interpreter(profile, "t", None), lines_per_chunk=10_000))
     rows = np.nonzero(chunk.motion >= 1)[0]
     p, n, r = profile.kinematics.forward(chunk.words[rows], tcp=True)
-    truth = {int(rows[i]) + 1 for i in range(len(rows)) if checker.reference.collides(p[i] + 6 * n[i], r[i])}
+    truth = {int(rows[i]) + 1 for i in range(len(rows)) if oracle(checker).collides(p[i] + 6 * n[i], r[i])}
     assert truth and truth <= {c["line"] for c in report.collisions}
 
 
@@ -702,7 +703,7 @@ def test_deposit_clearance_is_the_deepest_bead(bead_checker):
     n = len(C)
     hit, clearance = bead_checker.check_deposit(C, R, np.zeros(n), np.arange(n), store, np.zeros((0, 3)),
                                                 np.zeros(0, dtype=np.int64))
-    ref = bead_checker.reference
+    ref = oracle(bead_checker)
     sel = np.nonzero(hit)[0][:60]
     assert len(sel) > 20
     exact = np.array([ref.bead_clearance(C[i], R[i], beads, 1.0) for i in sel])
@@ -818,7 +819,7 @@ def test_deposit_free_is_the_exact_answer_at_many_orientations_about_few_tips(be
     for s in np.unique(seq):
         sel = seq == s
         seen = np.concatenate([beads[: len(beads) // 2], pending[pending_seq <= s]])
-        clearance[sel] = _exact_bead_clearance(bead_checker.reference, C[sel], R[sel], seen, 1.0)
+        clearance[sel] = _exact_bead_clearance(oracle(bead_checker), C[sel], R[sel], seen, 1.0)
     decided = np.abs(clearance) > 1e-6  # exactly at contact either answer is right
     assert (free[decided] == (clearance[decided] > 0)).all()
     assert 0.1 * len(C) < (~free).sum() < 0.9 * len(C)
@@ -848,7 +849,7 @@ def test_deposit_free_reuses_a_tips_beads_only_while_they_hold(bead_checker):
     for extra in (none, (pending, pending_seq)):
         for k, seed in ((5, 1), (40, 2), (7, 3), (64, 4)):
             C, R, seq, fresh = ask(k, seed, extra)
-            for again in range(2):  # the first call fills the cache, the next ones use it
+            for _again in range(2):  # the first call fills the cache, the next ones use it
                 assert np.array_equal(bead_checker.deposit_free(C, R, seq, store, *extra), fresh)
                 checks += 1
         kept = bead_checker._tip_cache

@@ -198,7 +198,7 @@ def test_no_pose_that_touches_the_stated_bead_is_called_free():
     from ncfix.collision.deposit import BeadStore
     from ncfix.geometry.mesh import load_head
     from ncfix.geometry.frames import minimal_rotation
-    from ncfix.reference import _bvh, _clip_head
+    from ncfix.collision.exact import bvh as _bvh, clip_head as _clip_head
 
     width, height, allowance = 2.5, 0.8, 1.0
     bead = BeadShape.stated(0.5, width, height, 0.0)

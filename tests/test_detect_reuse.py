@@ -20,6 +20,7 @@ import pytest
 import trimesh
 
 import ncfix.correct.solve as solve
+import ncfix.correct.strategies as registry
 import ncfix.pipeline as pipeline
 from ncfix.config import Options
 from ncfix.correct.solve import Solution
@@ -84,7 +85,7 @@ def _collect(monkeypatch, owner, name, made_by):
 @pytest.fixture
 def strategies(monkeypatch):
     """The ShiftStrategy objects the stage makes (in place of the real strategy)."""
-    return _collect(monkeypatch, solve, "make_strategy", lambda _, options: ShiftStrategy(options))
+    return _collect(monkeypatch, registry, "make_strategy", lambda _, options: ShiftStrategy(options))
 
 
 @pytest.fixture
@@ -211,7 +212,7 @@ def _fresh(ep, words) -> np.ndarray:
 
 @pytest.fixture
 def probes(monkeypatch):
-    return _collect(monkeypatch, solve, "make_strategy", lambda _, options: ProbeStrategy(options))
+    return _collect(monkeypatch, registry, "make_strategy", lambda _, options: ProbeStrategy(options))
 
 
 def test_a_recheck_reuses_only_what_the_changed_moves_leave_alone(box, probes):

@@ -421,7 +421,7 @@ def _hull_signed_distance(hull: trimesh.Trimesh, points: np.ndarray) -> np.ndarr
     """Exact signed distance (negative inside) from points (n, 3) to a convex hull: inside, the
     nearest face plane; outside, the distance to its triangles (coal's BVH of the triangles, not
     its convex shapes)."""
-    from ncfix.reference import _bvh
+    from ncfix.collision.exact import bvh as _bvh
 
     planes = points @ hull.face_normals.T - np.einsum("ij,ij->i", hull.face_normals, hull.triangles[:, 0])
     out = planes.max(axis=1)

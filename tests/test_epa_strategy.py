@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 
-import ncfix.correct.solve as solve
+import ncfix.correct.strategies as strategies
 from ncfix.config import Options
 from ncfix.correct.epa_strategy import DEFAULT_VARIANT, EpaStrategy, fill_offsets, keep_chain
 from ncfix.errors import ConfigError
@@ -130,11 +130,11 @@ def test_options_choose_the_variant():
 
 @pytest.fixture
 def made(monkeypatch, tmp_path):
-    """The EpaStrategy objects the pipeline makes: ``make_strategy`` learns "epa" here (until
-    solve.py does), and CoACD's cache goes to a fresh folder."""
+    """The EpaStrategy objects the pipeline makes (``strategies.make_strategy``), and CoACD's
+    cache goes to a fresh folder."""
     monkeypatch.setenv("NCFIX_CACHE", str(tmp_path / "coacd"))
     out: list[EpaStrategy] = []
-    original = solve.make_strategy
+    original = strategies.make_strategy
 
     def make_strategy(options):
         if options.strategy != "epa":
@@ -142,7 +142,7 @@ def made(monkeypatch, tmp_path):
         out.append(EpaStrategy(options))
         return out[-1]
 
-    monkeypatch.setattr(solve, "make_strategy", make_strategy)
+    monkeypatch.setattr(strategies, "make_strategy", make_strategy)
     return out
 
 

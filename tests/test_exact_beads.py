@@ -88,7 +88,7 @@ def test_bead_cells_find_every_bead_within_the_ball():
     assert len(beads) == len(points) and counts.sum() == len(points)
     owner = np.repeat(np.arange(len(counts)), counts)
     assert (np.linalg.norm(beads - centre[owner], axis=1) <= radius[owner] + 1e-9).all()
-    for k in range(30):
+    for _ in range(30):
         c, r = rng.uniform(-40.0, 40.0, 3), float(rng.uniform(0.5, 60.0))
         sel = cells.near(c, r)
         got, n, _, _ = cells.take(sel)

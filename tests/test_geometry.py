@@ -525,7 +525,7 @@ def test_compiled_containment_answers_as_the_reference(sample_head):
                 else:  # the hollow box's wall or cavity
                     c = rng.uniform(-350.0, 350.0, 3)
                 for part, test in zip(ref.parts, tests):
-                    meet = coal.collide(ref._head_bvh, coal.Transform3s(r, c), part.bvh, coal.Transform3s(),
+                    meet = coal.collide(ref.head_bvh, coal.Transform3s(r, c), part.bvh, coal.Transform3s(),
                                         coal.CollisionRequest(), coal.CollisionResult()) > 0
                     if not meet:  # (where triangles meet, either answer stands)
                         answers.append(test(c, r))

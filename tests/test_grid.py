@@ -13,7 +13,7 @@ from ncfix.collision import grid as grid_module
 from ncfix.collision.grid import EXACT_BAND_MM, build_distance_grid
 from ncfix.geometry.distance import point_mesh_distance
 from ncfix.geometry.mesh import load_mesh
-from ncfix.geometry.near import surface_distances
+from ncfix.collision.near import surface_distances
 
 MOLD = Path(__file__).resolve().parents[1] / "samples" / "recreated_mold.stl"
 PITCH = 0.5

@@ -209,8 +209,6 @@ def test_compiled_plain_reader_agrees_with_the_array_reader(name):
     from ncfix.nc.plain import PlainReader
     from ncfix.nc.plain_jit import PlainReaderJit
 
-    if not PlainReaderJit.available:
-        pytest.skip("numba is not installed")
     letters = ("N", "G", "F", "E", "X", "Y", "Z", "C", "B", "A")
     lines = corpus_path(*name.split("/")).read_bytes().splitlines(keepends=True)
     extra = [b"G1 X1.2.3\n", b"X1-2\n", b"G1 X+-1\n", b"(c)\n", b"  \r\n", b"; x\n", b"G2 X1\n", b"N10 5 X1\n",

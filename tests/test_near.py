@@ -1,4 +1,4 @@
-"""The compiled exact ball-touch and signed-distance tests against brute force (ncfix.geometry.near)."""
+"""The compiled exact ball-touch and signed-distance tests against brute force (ncfix.collision.near)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from ncfix.geometry.distance import point_mesh_distance, winding_numbers
-from ncfix.geometry.near import NearSurface, _signed_distance
+from ncfix.collision.near import NearSurface, _signed_distance
 
 
 @pytest.fixture(scope="module")
@@ -83,7 +83,7 @@ def test_depth_bound_holds_and_is_tight(solid):
     lies within one and a half sign-cell diagonals of it inside (the nearest outside centre is at
     most a diagonal past the surface, the point half one from its centre): what lets the
     deepest-bead search stop early."""
-    from ncfix.geometry.near import depth_bound
+    from ncfix.collision.near import depth_bound
 
     pts = _points(solid, 6000, seed=8)
     d = point_mesh_distance(pts, solid)
@@ -99,7 +99,7 @@ def test_depth_bound_holds_and_is_tight(solid):
 def test_signed_distance_below_a_threshold(solid):
     """``_signed_distance_below`` gives the exact signed distance where it is below the threshold
     and the threshold itself elsewhere (outside points, and inside ones no deeper than it)."""
-    from ncfix.geometry.near import _signed_distance_below
+    from ncfix.collision.near import _signed_distance_below
 
     pts = _points(solid, 3000, seed=9)
     d = point_mesh_distance(pts, solid)
@@ -118,7 +118,7 @@ def test_signed_distance_below_a_threshold(solid):
 def test_a_large_mesh_gets_larger_cells_and_the_same_distances():
     """A 3 m block would need 10^9 cells of 2 mm (8 GB of offsets): the cells grow until its box
     holds at most MAX_CELLS, and the distances stay the exact ones (here, to a box: closed form)."""
-    from ncfix.geometry import near
+    from ncfix.collision import near
 
     block = trimesh.creation.box(bounds=[[-1500.0, -1500.0, -3000.0], [1500.0, 1500.0, 0.0]])
     tris = np.asarray(block.triangles, dtype=np.float64)
@@ -139,7 +139,7 @@ def test_far_points_read_wider_lists_and_get_the_same_distances(monkeypatch):
     """Points beyond the cap are looked up in lists of a doubling cap before every triangle is read:
     the distances are the very same floats as reading every triangle, near and far, and a point
     past the last list (or outside every list) still gets its exact distance."""
-    from ncfix.geometry import near
+    from ncfix.collision import near
 
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
     tris = np.asarray(mesh.triangles, dtype=np.float64)

@@ -8,11 +8,11 @@ import pytest
 import trimesh
 
 from ncfix.collision import proximity
-from ncfix.geometry import near as near_module
+from ncfix.collision import near as near_module
 from ncfix.collision.grid import build_distance_grid
 from ncfix.collision.proximity import CAP_MM, SLACK_MM, HeadProximity, build_arrays, cached_head_proximity
 from ncfix.geometry.frames import minimal_rotation
-from ncfix.reference import _bvh
+from ncfix.collision.exact import bvh as _bvh
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 

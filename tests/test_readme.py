@@ -58,7 +58,7 @@ def arguments(command: str) -> list[str]:
 
 
 def parser():
-    build = getattr(cli, "build_parser", None) or getattr(cli, "_parser")
+    build = getattr(cli, "build_parser", None) or cli._parser
     return build()
 
 

@@ -132,9 +132,9 @@ def test_a_travel_through_the_printed_part_and_a_tilted_stretch_are_flagged_at_t
               for x in (-70.0, 70.0)]
     end = len(lines) - 2
     lines[end:end] = [b"G0 Z93.300 F4750\n",
-                      ("G0 X%.3f Y%.3f B0 C0 F5250\n" % (travel[0][0], travel[0][1])).encode(),
-                      ("G0 Z%.3f F4750\n" % travel[0][2]).encode(),
-                      ("G0 X%.3f Y%.3f Z%.3f F5250\n" % tuple(travel[1][:3])).encode()]
+                      f"G0 X{travel[0][0]:.3f} Y{travel[0][1]:.3f} B0 C0 F5250\n".encode(),
+                      f"G0 Z{travel[0][2]:.3f} F4750\n".encode(),
+                      f"G0 X{travel[1][0]:.3f} Y{travel[1][1]:.3f} Z{travel[1][2]:.3f} F5250\n".encode()]
     through = end + 4
     hits = _check(lines)
     new = {line for line in hits if line not in baseline}

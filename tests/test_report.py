@@ -16,9 +16,9 @@ import trimesh
 from rich.console import Console
 
 from ncfix.config import Options
-from ncfix.html import render_html
+from ncfix.report.html import render_html
 from ncfix.report import CONTEXT_LINES, PREVIEW_FACES, TRACE_POINTS, Report, decimate, split_lines
-from ncfix.summary import print_summary
+from ncfix.report.summary import print_summary
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLES = REPO / "samples"
@@ -320,7 +320,7 @@ def test_html_of_a_check_run_and_of_a_pass_through_render():
 
 
 def test_the_3d_picture_skips_the_back_of_closed_shells_only():
-    from ncfix.html import _winding
+    from ncfix.report.html import _winding
 
     box = trimesh.creation.box(extents=(20.0, 15.0, 50.0))
     assert _winding(box.vertices, box.faces) == 1  # wound outward: back faces are not drawn

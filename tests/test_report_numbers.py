@@ -12,7 +12,7 @@ import trimesh
 from rich.console import Console
 
 import ncfix
-from ncfix.summary import print_summary
+from ncfix.report.summary import print_summary
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "samples" / "bathtub_273.nc"

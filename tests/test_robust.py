@@ -18,7 +18,6 @@ import numpy as np
 import pytest
 import trimesh
 
-import ncfix
 from ncfix.cli import main
 from ncfix.errors import InternalError, NcfixError
 

@@ -38,6 +38,9 @@ pitch / 16 of contact.
 
 from __future__ import annotations
 
+import ctypes.util
+import os
+import sys
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -47,16 +50,17 @@ import trimesh
 
 from ncfix.collision import descent
 from ncfix.collision.deposit import BeadCells, BeadField, BeadStore
+from ncfix.collision.depth import DepthProbe
 from ncfix.collision.descent import HostTree
+from ncfix.collision.exact import ExactParts, clip_head
 from ncfix.collision.exact_beads import BeadBuckets, candidates_free, first_bead_hits
-from ncfix.collision.split import thread_count
 from ncfix.collision.grid import DistanceGrid, cached_distance_grid
 from ncfix.collision.head import HeadModel, SphereTree, cached_sphere_tree
+from ncfix.collision.near import cached_near_surface
 from ncfix.collision.nested import Nested, mesh_bodies
 from ncfix.collision.proximity import cached_head_proximity
+from ncfix.collision.split import thread_count
 from ncfix.errors import ConfigError
-from ncfix.geometry.near import cached_near_surface
-from ncfix.reference import ExactReference
 
 # Octree cell (mm) of the tree's lowest inner level: a few balls each.
 LEAF_CELL_MM = 1.0
@@ -120,15 +124,10 @@ def gpu_driver_present() -> bool:
     """Whether torch could see a GPU here, decided without importing torch (about 2.5 s): on
     Linux a loaded GPU driver shows in ``GPU_DRIVER_PATHS``; macOS has no CUDA; elsewhere
     (Windows) NVIDIA's driver library must be on the search path."""
-    import os
-    import sys
-
     if sys.platform.startswith("linux"):
         return any(os.path.exists(path) for path in GPU_DRIVER_PATHS)
     if sys.platform == "darwin":
         return False
-    import ctypes.util
-
     return ctypes.util.find_library("nvcuda") is not None
 
 
@@ -243,7 +242,7 @@ class Checker:
     def __init__(self, head: trimesh.Trimesh, model: HeadModel, parts: list[tuple[str, trimesh.Trimesh, bool]], *,
                  pitch_mm: float, clearance_mm: float = 0.0, bead_radius_mm: float = 1.0,
                  tip_allowance_mm: float = 1.0, device: str = "cpu", part_bounds_mm: np.ndarray | None = None,
-                 bead_drop_mm: float = 0.0):
+                 bead_drop_mm: float = 0.0) -> None:
         self.device = resolve_device(device)
         # The sphere-tree descent: compiled loops on the CPU (``descent``), torch batches elsewhere.
         self.compiled = self.device == "cpu"
@@ -259,9 +258,10 @@ class Checker:
         self.tree = tree_tensors(cached_sphere_tree(model.centers_mm, model.radii_mm, LEAF_CELL_MM), self.device)
         self.parts = [Part(name, cached_distance_grid(mesh, pitch_mm, closed=closed, name=name, bounds_mm=part_bounds_mm),
                            mesh) for name, mesh, closed in parts]
-        self.reference = ExactReference(head, {p.name: p.mesh for p in self.parts},
-                                        tip_allowance_mm=self.tip_allowance_mm,
-                                        open_parts={name for name, _, closed in parts if not closed})
+        self.exact = ExactParts(head, {p.name: p.mesh for p in self.parts},
+                                open_parts={name for name, _, closed in parts if not closed})
+        # The head above the tip allowance: all that beads are tested against.
+        self.clipped_head = clip_head(head, self.tip_allowance_mm)
         # One body inside the other (``nested``): every connected body of the head and of each part.
         head_bodies = mesh_bodies(head)
         self._nested = [Nested(head_bodies, mesh_bodies(mesh), closed) for _, mesh, closed in parts]
@@ -272,7 +272,7 @@ class Checker:
         self._store_beads = None  # (store state, its kept beads concatenated)
         self._tip_cache = None  # (store state, pending, pending_seq, {tip key: (centre, radius, cells)})
         if self.bead_radius_mm > 0:
-            clipped = self.reference._bead_head
+            clipped = self.clipped_head
             # The head above the allowance, in the head frame, at the pitch (filters candidate beads).
             self.head_grid = cached_distance_grid(clipped, self.pitch_mm, closed=True, name="head")
             # Only balls reaching above the allowance plane can meet a bead.
@@ -288,8 +288,6 @@ class Checker:
     def depth_probe(self):
         """The report's penetration estimates (``depth.DepthProbe``), made on first use."""
         if getattr(self, "_depth_probe", None) is None:
-            from ncfix.collision.depth import DepthProbe
-
             self._depth_probe = DepthProbe(self.head, [p.grid for p in self.parts], max(2.0 * self.pitch_mm, 2.0))
         return self._depth_probe
 
@@ -367,6 +365,13 @@ class Checker:
                                            self._tensor(lin[a:b]), self._tensor(ang[a:b]), cap)
         return out
 
+    def deposit_balls_near(self, lower_bound, C: np.ndarray, R: np.ndarray, reach_mm: np.ndarray) -> np.ndarray:
+        """(n,) bool: poses (tips C (n, 3), rotations R (n, 3, 3)) at which the deposit tree's balls
+        (the head above the tip allowance) are not cleared from a body by more than ``reach_mm``
+        (n,) plus the clearance, the body given by its ``lower_bound`` (a bead field's): the
+        conservative sphere-tree test, no exact test."""
+        return self._undecided_batched(self.dep_tree, lower_bound, C, R, reach_mm, np.zeros(len(C)))
+
     def _grouped_undecided(self, tree, lower_bound, C, R, lin, ang, cum_lin, cum_ang) -> np.ndarray:
         """(n,) bool: samples not cleared, coarse to fine (module doc). cum_lin / cum_ang (n,): summed
         tip steps and turns from the first sample (|ΔC| and θ between consecutive samples)."""
@@ -414,16 +419,16 @@ class Checker:
         compiled test of ``proximity`` (about half the time of coal's) while the distance is
         within its cap, else to coal's mesh-mesh collision test with the distance as its security
         margin (the triangle pairs closer than it collide)."""
-        ref = self.reference
+        exact = self.exact
         need = margin + self.clearance_mm
         near = self._proximity[k]
         if need <= near.cap_mm:
             return near.within(c, r, need) or self._nested[k](c, r)
-        request = ref._creq
+        request = exact.collision_request
         if need > 0:
             request = self._margin_request
             request.security_margin = need
-        if coal.collide(ref._head_bvh, coal.Transform3s(r, c), ref.parts[k].bvh, coal.Transform3s(), request,
+        if coal.collide(exact.head_bvh, coal.Transform3s(r, c), exact.parts[k].bvh, coal.Transform3s(), request,
                         coal.CollisionResult()) > 0:
             return True
         return self._nested[k](c, r)
@@ -532,8 +537,7 @@ class Checker:
         n = len(C)
         free = np.ones(n, dtype=bool)
         need = self.bead_radius_mm + self.clearance_mm
-        ref = self.reference
-        reach = float(np.linalg.norm(ref._bead_head.vertices, axis=1).max()) + need
+        reach = float(np.linalg.norm(self.clipped_head.vertices, axis=1).max()) + need
         ta = self.tip_allowance_mm
         if store.old is not None:  # retired beads: only their field decides (``_exact_deposit``)
             zero = np.zeros(n)

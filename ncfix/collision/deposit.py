@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 from ncfix.geometry.cells import group_cells
@@ -815,11 +816,6 @@ def _stamp_coarse_py(grid, occupied, lo, cells, offsets, values):  # pragma: no 
 
 class _Kernels:
     def __init__(self):
-        try:
-            from numba import njit
-        except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
-            def njit(**_):
-                return lambda f: f
         self.chords = njit(cache=True)(_chords_py)
         self.stamp_chords = njit(cache=True)(_stamp_chords_py)
         self.stamp_coarse = njit(cache=True)(_stamp_coarse_py)

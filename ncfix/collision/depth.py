@@ -18,9 +18,11 @@ decision depends on it).
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 import trimesh
 
-from ncfix.collision.grid import DistanceGrid, distance_transform
+from ncfix.collision.grid import DistanceGrid
+from ncfix.collision.voxelize import distance_transform
 
 # Poses of a move whose depth is measured: this many, evenly spread, and its last. Depth changes no
 # faster than the head moves, so a pass is measured to within half the head's travel between them.
@@ -76,12 +78,7 @@ def _deepest(points, C, R, field, origin, pitch):  # pragma: no cover - compiled
     return best
 
 
-try:
-    from numba import njit as _njit
-
-    _deepest = _njit(cache=True, nogil=True)(_deepest)
-except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
-    pass
+_deepest = njit(cache=True, nogil=True)(_deepest)
 
 
 def move_poses(C: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

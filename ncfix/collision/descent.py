@@ -16,6 +16,7 @@ grids change with every add, overlay and growth).
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from ncfix.collision.deposit import COARSE_CELLS, COARSE_REACH_MM, FINE_LEVELS, BeadField
 from ncfix.collision.grid import DistanceGrid
@@ -206,20 +207,15 @@ def _failing_kernel(C, R, lin, ang, extra, center, radius, reach, child_start, c
     return pose_out[:total].copy(), node_out[:total].copy()
 
 
-try:
-    from numba import njit as _njit
-
-    _gather = _njit(cache=True, nogil=True, inline="always")(_gather)
-    _box_gap = _njit(cache=True, nogil=True, inline="always")(_box_gap)
-    _field_lb = _njit(cache=True, nogil=True, inline="always")(_field_lb)
-    _grid_lb = _njit(cache=True, nogil=True, inline="always")(_grid_lb)
-    _lb = _njit(cache=True, nogil=True, inline="always")(_lb)
-    _lb_points = _njit(cache=True, nogil=True)(_lb_points)
-    _node_fails = _njit(cache=True, nogil=True, inline="always")(_node_fails)
-    _undecided_kernel = _njit(cache=True, nogil=True)(_undecided_kernel)
-    _failing_kernel = _njit(cache=True, nogil=True)(_failing_kernel)
-except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
-    pass
+_gather = njit(cache=True, nogil=True, inline="always")(_gather)
+_box_gap = njit(cache=True, nogil=True, inline="always")(_box_gap)
+_field_lb = njit(cache=True, nogil=True, inline="always")(_field_lb)
+_grid_lb = njit(cache=True, nogil=True, inline="always")(_grid_lb)
+_lb = njit(cache=True, nogil=True, inline="always")(_lb)
+_lb_points = njit(cache=True, nogil=True)(_lb_points)
+_node_fails = njit(cache=True, nogil=True, inline="always")(_node_fails)
+_undecided_kernel = njit(cache=True, nogil=True)(_undecided_kernel)
+_failing_kernel = njit(cache=True, nogil=True)(_failing_kernel)
 
 
 class HostTree:

@@ -10,7 +10,7 @@ beads this halves the loop), keeps each bead once per pose (the first node that 
 drops beads the pose does not see yet (laid at a later sample), beads wholly below the
 tip-allowance plane, and beads the head grid's lower bound clears;
 it then tests the rest exactly, smallest bound first, and stops at the pose's first touching bead
-(``ncfix.geometry.near``: exact point-triangle distances, a winding number where the bound allows
+(``ncfix.collision.near``: exact point-triangle distances, a winding number where the bound allows
 the centre to be inside the head).
 
 The same decisions as the numpy formulation it replaces (k-d tree pairs, a dedupe, vectorised
@@ -21,9 +21,10 @@ its own beads.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from ncfix.collision.split import map_runs
-from ncfix.geometry.near import NearSurface, _signed_distance, _signed_distance_below, _touch, depth_bound
+from ncfix.collision.near import NearSurface, _signed_distance, _signed_distance_below, _touch, depth_bound
 
 # Bucket grid of the beads: cell edge (mm), doubled until the grid has at most MAX_CELLS cells.
 CELL_MM = 3.0
@@ -163,13 +164,8 @@ def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
     return hit, depth, candidates, tested
 
 
-try:
-    from numba import njit as _njit
-
-    _head_lb = _njit(cache=True, nogil=True)(_head_lb)
-    _kernel = _njit(cache=True, nogil=True)(_kernel)
-except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
-    pass
+_head_lb = njit(cache=True, nogil=True)(_head_lb)
+_kernel = njit(cache=True, nogil=True)(_kernel)
 
 
 def candidates_free(C, R, cells, head_grid, near: NearSurface, *, need: float, allowance: float):
@@ -311,14 +307,9 @@ def _sort_by_cell(beads, lo, cell, dims):  # pragma: no cover - compiled
     return order, start
 
 
-try:
-    from numba import njit as _njit
-
-    _inside = _njit(cache=True, nogil=True)(_inside)
-    _candidates_kernel = _njit(cache=True, nogil=True)(_candidates_kernel)
-    _sort_by_cell = _njit(cache=True, nogil=True)(_sort_by_cell)
-except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
-    pass
+_inside = njit(cache=True, nogil=True)(_inside)
+_candidates_kernel = njit(cache=True, nogil=True)(_candidates_kernel)
+_sort_by_cell = njit(cache=True, nogil=True)(_sort_by_cell)
 
 
 def first_bead_hits(C, R, lin, ang, seq, node_pose, node_c, node_r, node_reach, buckets: BeadBuckets,

@@ -36,13 +36,11 @@ import numpy as np
 import trimesh
 
 from ncfix import cache
-from ncfix.collision.voxelize import grid_frame, surface_cells, voxelize
+from ncfix.collision.near import surface_distances
+from ncfix.collision.voxelize import EDT_SLACK_MM, distance_transform, grid_frame, surface_cells, voxelize
 from ncfix.geometry.tolerances import TOLERANCES
 from ncfix.memory import ensure_fits, grid_cells
 
-# The EDT is stored in float32 (the `edt` package computes in float32): relative error ~1e-7.
-# This absolute slack (mm) dominates it for any grid up to 10 m, and float64 query arithmetic.
-EDT_SLACK_MM = 1e-4
 # Empty cells around the body: near it, lookups then stay inside the grid (tighter bounds).
 GRID_PAD_CELLS = 6
 # Peak bytes per cell while a grid is built (masks, the voxelizer's column sums, the EDT's float32
@@ -54,7 +52,7 @@ EXACT_BAND_MM = 4.0
 # (TOLERANCES.ray_jitter_fraction of a cell) may have passed on the other side of the surface.
 JITTER_SAFE_MM = 1e-3
 # The code a grid comes from: editing any of these files makes every cached grid a miss.
-GRID_SOURCES = ("ncfix.collision.grid", "ncfix.collision.voxelize", "ncfix.geometry.near", "ncfix.geometry.tolerances")
+GRID_SOURCES = ("ncfix.collision.grid", "ncfix.collision.voxelize", "ncfix.collision.near", "ncfix.geometry.tolerances")
 _GRID_ARRAYS = ("dist_mm", "origin_mm", "pitch_mm", "body_bounds_mm")
 
 
@@ -164,8 +162,6 @@ def tighten_near_body(dist: np.ndarray, inside: np.ndarray, mesh: trimesh.Trimes
                       pitch_mm: float) -> None:
     """Raises ``dist`` (the EDT, float32, in place) to ``d(c) + h`` at the cells within
     ``EXACT_BAND_MM`` whose centre is known to lie outside the body (module doc)."""
-    from ncfix.geometry.near import surface_distances
-
     h = 0.5 * np.sqrt(3.0) * pitch_mm
     cells = np.flatnonzero((dist.ravel() <= EXACT_BAND_MM) & ~inside.ravel())
     if not len(cells):
@@ -178,20 +174,6 @@ def tighten_near_body(dist: np.ndarray, inside: np.ndarray, mesh: trimesh.Trimes
     cells, raised = cells[known], (exact[known] + h).astype(np.float32)
     flat = dist.reshape(-1)
     flat[cells] = np.maximum(flat[cells], raised)
-
-
-def distance_transform(free: np.ndarray, pitch_mm: float) -> np.ndarray:
-    """Euclidean distance (mm, float32) from each True cell to the nearest False cell."""
-    if not (~free).any():
-        return np.full(free.shape, np.float32(1e9), dtype=np.float32)
-    try:
-        import edt
-
-        return edt.edt(free, anisotropy=(pitch_mm,) * 3, black_border=False, parallel=2).astype(np.float32)
-    except ImportError:  # scipy: same values, about 4x slower
-        from scipy import ndimage
-
-        return ndimage.distance_transform_edt(free, sampling=pitch_mm).astype(np.float32)
 
 
 def build_distance_grid(mesh: trimesh.Trimesh, pitch_mm: float, *, closed: bool = True, name: str = "",

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
 from ncfix import cache
 from ncfix.collision.voxelize import grid_frame, surface_cells, voxelize
@@ -110,8 +111,6 @@ class HeadModel:
 
     def covers(self, points_mm: np.ndarray) -> np.ndarray:
         """Whether each head-frame point (n, 3) lies in some ball -> (n,) bool."""
-        from scipy.spatial import cKDTree
-
         pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
         tree = cKDTree(self.centers_mm)
         out = np.zeros(len(pts), dtype=bool)

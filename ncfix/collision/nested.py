@@ -20,9 +20,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 import trimesh
 
-from ncfix.geometry.near import _winding
+from ncfix.collision.near import _winding
 
 # Box tests widened by this (mm): a vertex placed by the pose's rotation is off by ~1e-13 mm.
 SLACK_MM = 1e-9
@@ -161,9 +162,4 @@ def _nested_kernel(c, r, centre, radius, head_lo, head_hi, head_tris, head_verts
     return False
 
 
-try:
-    from numba import njit as _njit
-
-    _nested_kernel = _njit(cache=True, nogil=True)(_nested_kernel)
-except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
-    pass
+_nested_kernel = njit(cache=True, nogil=True)(_nested_kernel)

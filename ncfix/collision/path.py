@@ -35,6 +35,7 @@ from ncfix.collision.deposit import BeadStore, axial_moves, bead_samples
 from ncfix.collision.plough import ploughing_moves
 from ncfix.geometry.frames import half_turn_direction
 from ncfix.kinematics.tool_vector import ToolVector
+from ncfix.profiles import Profile
 
 # A sample hit with its sweep margin is checked again as this many finer samples (REFINE_LEVELS deep).
 REFINE_PARTS = 4
@@ -95,7 +96,7 @@ class PathChecker:
     """Forward kinematics of words and the swept check of runs of moves against parts and beads
     (``checker`` None: the kinematics only)."""
 
-    def __init__(self, checker: Checker | None, profile, standoff_mm: float, pitch_mm: float):
+    def __init__(self, checker: Checker | None, profile: Profile, standoff_mm: float, pitch_mm: float) -> None:
         self.checker = checker
         self.kin = profile.kinematics
         self.is_vector = profile.is_vector

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ncfix.geometry.near import _winding
+from ncfix.collision.near import _winding
 
 # Crossings closer to the tip than this (mm) are the tip's own surface (it sits on the head mesh).
 TIP_EPS_MM = 1e-6

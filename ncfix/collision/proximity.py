@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import numpy as np
 import trimesh
+from numba import njit
 
-from ncfix.collision import descent
+from ncfix import cache
+from ncfix.collision import descent, near
 from ncfix.collision.grid import DistanceGrid
 from ncfix.collision.head import build_sphere_tree, leaf_order
-from ncfix.geometry import near
-from ncfix.geometry.near import _cell_lists, _tri_d2
+from ncfix.collision.near import _cell_lists, _tri_d2
 
 # The head's triangles are split until no edge is longer than this (mm): small triangles have
 # tight balls (the tree clears them) and boxes of a few cells.
@@ -181,16 +182,11 @@ def _within_kernel(c, r, d, head, center, radius, child_start, child_count, leaf
     return False
 
 
-try:
-    from numba import njit as _njit
-
-    _seg_seg_d2 = _njit(cache=True, nogil=True)(_seg_seg_d2)
-    _edge_crosses = _njit(cache=True, nogil=True)(_edge_crosses)
-    _plane_apart = _njit(cache=True, nogil=True)(_plane_apart)
-    _tris_within = _njit(cache=True, nogil=True)(_tris_within)
-    _within_kernel = _njit(cache=True, nogil=True)(_within_kernel)
-except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
-    pass
+_seg_seg_d2 = njit(cache=True, nogil=True)(_seg_seg_d2)
+_edge_crosses = njit(cache=True, nogil=True)(_edge_crosses)
+_plane_apart = njit(cache=True, nogil=True)(_plane_apart)
+_tris_within = njit(cache=True, nogil=True)(_tris_within)
+_within_kernel = njit(cache=True, nogil=True)(_within_kernel)
 
 
 def _balls(tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -205,7 +201,7 @@ def _balls(tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 _ARRAYS = ("head", "center", "radius", "child_start", "child_count", "leaf0", "levels", "cap_mm", "cell_mm", "lo",
            "dims", "start", "listed")
 # The code the arrays come from: editing any of these files makes every cached one a miss.
-PROXIMITY_SOURCES = ("ncfix.collision.proximity", "ncfix.collision.head", "ncfix.geometry.near",
+PROXIMITY_SOURCES = ("ncfix.collision.proximity", "ncfix.collision.head", "ncfix.collision.near",
                      "ncfix.geometry.tolerances")
 
 
@@ -277,8 +273,6 @@ def cached_head_proximity(head: trimesh.Trimesh, part: trimesh.Trimesh, grid: Di
     """A HeadProximity of the head against the part, its arrays read from the on-disk cache
     (``ncfix.cache``) when they were built before from the same meshes, sizes, code and libraries
     (``name``: the part's file, for the notice of a build)."""
-    from ncfix import cache
-
     key = cache.make_key(
         "proximity",
         np.asarray(head.vertices, dtype=np.float64), np.asarray(head.faces, dtype=np.int64),

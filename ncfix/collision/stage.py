@@ -10,7 +10,9 @@ import numpy as np
 
 from ncfix.collision.checker import Checker
 from ncfix.collision.deposit import BeadStore, choose_rule, depositing
-from ncfix.collision.path import Moves, MoveHits, PathChecker
+from ncfix.collision.depth import move_poses
+from ncfix.collision.path import MoveHits, Moves, PathChecker
+from ncfix.geometry.mesh import check_part_overlaps
 
 
 class MotionRows:
@@ -78,8 +80,6 @@ def check_placement(path: PathChecker, motion: MotionRows, placed_parts: list, c
     by where the material lies (the beads reach ``bead_drop_mm + bead_radius_mm`` from P) and a
     pitch, the checker's resolution: a platform that the first layer is printed on touches it.
     Returns the parts still to check (none once a chunk moved)."""
-    from ncfix.geometry.mesh import check_part_overlaps
-
     if not placed_parts or not len(rows):
         return placed_parts
     P, _, _ = path.forward(path.normalise(chunk.words[rows]), motion.tcp(chunk, rows))
@@ -101,13 +101,11 @@ def collision_entry(checker: Checker, line: int, part_hit: np.ndarray, deposit_h
     the sweep) and the penetration: the deepest the head goes into a body hit, over the poses
     of the move (``move_C`` (m, 3), ``move_R`` (m, 3, 3); ``depth.DepthProbe`` for the parts,
     the deepest bead for the beads, never less than the deciding pose's exact overlap)."""
-    from ncfix.collision.depth import move_poses
-
     hit = [j for j, p in enumerate(checker.parts) if part_hit[j]]
     bodies = [checker.parts[j].name for j in hit]
     clearance = np.inf
     if bodies:
-        per_part = checker.reference.part_clearances(c, r)
+        per_part = checker.exact.part_clearances(c, r)
         clearance = min(per_part[b] for b in bodies)
     if deposit_hit:
         bodies.append("deposit")
@@ -167,7 +165,9 @@ class CheckStage:
             tick = None
             if self.progress is not None:
                 first, end = chunk.first_lineno + rows_w[0], chunk.first_lineno + rows_w[-1] + 1
-                tick = lambda f, first=first, end=end: self.progress(first + f * (end - first))
+
+                def tick(f, first=first, end=end):
+                    return self.progress(first + f * (end - first))
             hits, self.seq = self.path.check(moves, self.store, self.seq, progress=tick)
             self.samples += hits.samples
             record_collisions(self.report, self.checker, chunk.first_lineno + rows_w, hits,

@@ -15,9 +15,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import edt
 import numpy as np
+from numba import njit
 
 from ncfix.geometry.tolerances import TOLERANCES
+
+# The EDT is stored in float32 (the `edt` package computes in float32): relative error ~1e-7.
+# This absolute slack (mm) dominates it for any grid up to 10 m, and float64 query arithmetic.
+EDT_SLACK_MM = 1e-4
 
 # Pairs (triangle, column) handled per numpy pass: bounds memory to a few hundred MB.
 _CHUNK_PAIRS = 2_000_000
@@ -191,51 +197,9 @@ def surface_cells(
     marked = np.zeros(int(np.prod(dims)), dtype=bool)
     dominant = np.argmax(np.abs(normal), axis=1)
     r = float(radius_mm)
-    if _surface_jit is not None and len(tri_all):
+    if len(tri_all):
         _surface_jit(np.ascontiguousarray(tri_all), np.ascontiguousarray(normal), np.ascontiguousarray(edge_normal),
                      dominant.astype(np.int64), origin, dims, float(pitch_mm), r, marked)
-        return marked.reshape(tuple(dims))
-    for w_axis in range(3):
-        u_axis, v_axis = [k for k in range(3) if k != w_axis]
-        sel = np.nonzero(dominant == w_axis)[0]
-        if len(sel) == 0:
-            continue
-        tri = tri_all[sel]
-        uv = [u_axis, v_axis]
-        lo = np.maximum(np.ceil((tri[:, :, uv].min(axis=1) - r - origin[uv]) / pitch_mm), 0).astype(np.int64)
-        hi = np.minimum(np.floor((tri[:, :, uv].max(axis=1) + r - origin[uv]) / pitch_mm), dims[uv] - 1).astype(np.int64)
-        ext = np.maximum(hi - lo + 1, 0)
-        counts = ext[:, 0] * ext[:, 1]
-        for a, b in _chunks(counts, _CHUNK_PAIRS // 2):
-            c = counts[a:b]
-            if c.sum() == 0:
-                continue
-            t = np.repeat(np.arange(a, b), c)
-            local = np.arange(len(t)) - np.repeat(np.cumsum(c) - c, c)
-            iu = lo[t, 0] + local % ext[t, 0]
-            iv = lo[t, 1] + local // ext[t, 0]
-            g = sel[t]
-            n = normal[g]
-            pu = origin[u_axis] + iu * pitch_mm
-            pv = origin[v_axis] + iv * pitch_mm
-            a0 = tri_all[g, 0]
-            # Plane slab |n . (x - a0)| <= r, solved for the coordinate along w.
-            base = (n * a0).sum(axis=1) - n[:, u_axis] * pu - n[:, v_axis] * pv
-            w1 = (base - r) / n[:, w_axis]
-            w2 = (base + r) / n[:, w_axis]
-            k0 = np.maximum(np.ceil((np.minimum(w1, w2) - origin[w_axis]) / pitch_mm), 0).astype(np.int64)
-            k1 = np.minimum(np.floor((np.maximum(w1, w2) - origin[w_axis]) / pitch_mm), dims[w_axis] - 1).astype(np.int64)
-            kc = np.maximum(k1 - k0 + 1, 0)
-            rep = np.repeat(np.arange(len(t)), kc)
-            kk = k0[rep] + (np.arange(len(rep)) - np.repeat(np.cumsum(kc) - kc, kc))
-            idx = np.empty((len(rep), 3), dtype=np.int64)
-            idx[:, u_axis], idx[:, v_axis], idx[:, w_axis] = iu[rep], iv[rep], kk
-            centres = origin + idx * pitch_mm
-            gg = g[rep]
-            offset = np.einsum("nkj,nkj->nk", edge_normal[gg], centres[:, None, :] - edge_start[gg])
-            near = (offset <= r).all(axis=1)
-            flat = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
-            marked[flat[near]] = True
     return marked.reshape(tuple(dims))
 
 
@@ -294,9 +258,11 @@ def _surface_kernel(tri, normal, edge_normal, dominant, origin, dims, pitch, r, 
                         marked[(i0 * dims[1] + i1) * dims[2] + i2] = True
 
 
-try:
-    from numba import njit
+def distance_transform(free: np.ndarray, pitch_mm: float) -> np.ndarray:
+    """Euclidean distance (mm, float32) from each True cell to the nearest False cell."""
+    if not (~free).any():
+        return np.full(free.shape, np.float32(1e9), dtype=np.float32)
+    return edt.edt(free, anisotropy=(pitch_mm,) * 3, black_border=False, parallel=2).astype(np.float32)
 
-    _surface_jit = njit(cache=True, nogil=True)(_surface_kernel)
-except ImportError:  # pragma: no cover - numba is a declared dependency; the numpy passes remain
-    _surface_jit = None
+
+_surface_jit = njit(cache=True, nogil=True)(_surface_kernel)

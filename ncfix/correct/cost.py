@@ -25,8 +25,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ncfix.collision.path import PathChecker
+from ncfix.collision.stage import MotionRows
 from ncfix.correct.graph import DEVIATION_WEIGHT
 from ncfix.geometry.frames import angle_between_deg, turn_rotations
+from ncfix.nc.modal import Interpreter
 
 
 @dataclass(frozen=True)
@@ -72,10 +75,6 @@ def path_cost(programmed: np.ndarray, output: np.ndarray, max_step_deg: float,
 def program_vectors(data: bytes, profile, source: str = "<program>") -> tuple[np.ndarray, np.ndarray]:
     """(lines, N): the 1-based input line and the unit tool vector of every motion block of a
     program whose axes are all known, as ncfix reads it with ``profile`` (a ``Profile``)."""
-    from ncfix.collision.path import PathChecker
-    from ncfix.collision.stage import MotionRows
-    from ncfix.nc.modal import Interpreter
-
     chunk = Interpreter(profile, source).feed_chunk(data.splitlines(keepends=True), 1)
     rows = np.nonzero(chunk.motion >= 0)[0]
     rows = rows[np.isfinite(chunk.words[rows]).all(axis=1)]

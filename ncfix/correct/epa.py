@@ -39,10 +39,12 @@ from pathlib import Path
 import coal
 import numpy as np
 import trimesh
+from numba import njit
+from scipy.spatial import HalfspaceIntersection
 
+from ncfix.collision.near import tri_closest
 from ncfix.correct.decompose import Decomposition, decompose
 from ncfix.geometry.frames import angle_between_deg, axis_rotation
-from ncfix.geometry.near import _tri_closest
 
 RotationOf = Callable[[np.ndarray], np.ndarray]
 IsFree = Callable[[np.ndarray], np.ndarray]
@@ -396,8 +398,6 @@ def _outer_polytope(points: np.ndarray) -> np.ndarray:
     points' support in that direction (so it holds every point), with the six axis planes; the
     polytope is their intersection. The planes around a vertex of many faces (a fine cone's apex)
     become a few dozen."""
-    from scipy.spatial import HalfspaceIntersection
-
     points = np.asarray(points, dtype=np.float64)
     hull = trimesh.convex.convex_hull(points)
     normals, areas = np.asarray(hull.face_normals), np.asarray(hull.area_faces)
@@ -636,7 +636,7 @@ def _sphere_exits(points, normals, offsets, triangles, rad):  # pragma: no cover
         for f in range(normals.shape[0]):  # the closest point lies on a face the centre sees
             if normals[f, 0] * x + normals[f, 1] * y + normals[f, 2] * z - offsets[f] <= 0.0:
                 continue
-            cx, cy, cz = _tri_closest(x, y, z, triangles[f])
+            cx, cy, cz = tri_closest(x, y, z, triangles[f])
             d2 = (x - cx) ** 2 + (y - cy) ** 2 + (z - cz) ** 2
             if d2 < best:
                 best, qx, qy, qz = d2, cx, cy, cz
@@ -648,12 +648,7 @@ def _sphere_exits(points, normals, offsets, triangles, rad):  # pragma: no cover
     return out
 
 
-try:
-    from numba import njit as _njit
-
-    _within_hull = _njit(cache=True, nogil=True)(_within_hull)
-    _boxes_met = _njit(cache=True, nogil=True)(_boxes_met)
-    _pieces_met = _njit(cache=True, nogil=True)(_pieces_met)
-    _sphere_exits = _njit(cache=True, nogil=True)(_sphere_exits)
-except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
-    pass
+_within_hull = njit(cache=True, nogil=True)(_within_hull)
+_boxes_met = njit(cache=True, nogil=True)(_boxes_met)
+_pieces_met = njit(cache=True, nogil=True)(_pieces_met)
+_sphere_exits = njit(cache=True, nogil=True)(_sphere_exits)

@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from ncfix.correct.epa import VARIANTS, EpaModel, run_tilts
-from ncfix.correct.solve import GraphStrategy
+from ncfix.correct.solve import GraphStrategy, Solution
 from ncfix.errors import ConfigError
 from ncfix.geometry.cells import first_of_each_cell
 from ncfix.geometry.frames import angle_between_deg, rotation_between, rotation_from_z
@@ -222,8 +222,6 @@ class _EpisodeSolver:
 
     # -- the solve -------------------------------------------------------------------------------
     def run(self):
-        from ncfix.correct.solve import Solution
-
         ep = self.ep
         self._required()
         best_words, best_bad = ep.programmed.copy(), ep.is_colliding.copy()

@@ -15,6 +15,7 @@ costs one vectorised pass over the edges per round.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 from ncfix.collision.split import map_runs
@@ -258,12 +259,7 @@ def _dense_min(targets, turned, sources, cost, order, limit, plain, banned):
     return total, pick
 
 
-try:
-    from numba import njit as _njit
-
-    _dense_min = _njit(cache=True, nogil=True)(_dense_min)
-except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
-    pass
+_dense_min = njit(cache=True, nogil=True)(_dense_min)
 
 
 def cheapest_path(candidates: np.ndarray, free: np.ndarray, programmed: np.ndarray,

@@ -17,9 +17,9 @@ import numpy as np
 
 from ncfix.collision.deposit import BeadStore
 from ncfix.collision.path import Moves
+from ncfix.correct.blend import blend
 from ncfix.correct.candidates import SphereGrid, level_candidates
 from ncfix.correct.graph import LayeredGraph
-from ncfix.correct.stage import Rechecks
 from ncfix.geometry.frames import angle_between_deg, minimal_rotation, turn_rotations
 from ncfix.kinematics.base import Unreachable
 
@@ -95,7 +95,7 @@ class Episode:
         # re-check uses the solution's own beads).
         self.bead_pts, self.bead_seq = self._programmed_beads()
         self.tests = 0  # candidate poses tested
-        self.checks = Rechecks(stage)  # re-checks, each reusing what the last one found
+        self.checks = stage.rechecks()  # re-checks, each reusing what the last one found
         self._programmed_free: np.ndarray | None = None
 
     def _prev_programmed(self) -> np.ndarray:
@@ -598,8 +598,6 @@ def blend_episode(ep: Episode, words: np.ndarray, left: np.ndarray) -> np.ndarra
     limits. The blended episode is re-checked whole; when it collides, the spans around each
     failing level go back to the strategy's orientations and it is checked again (up to
     ``BLEND_ROUNDS`` times, else the strategy's words are kept)."""
-    from ncfix.correct.blend import blend
-
     L = len(ep.rows)
     if L < 3:
         return words
@@ -668,14 +666,3 @@ def _cone(cands: np.ndarray, ep: Episode, L: int) -> np.ndarray:
         ok &= angle_between_deg(cands, after[None, None, :]) <= reach[:, None] + 1e-9
     ok[:, 0] = True  # the programmed orientation itself is always a candidate
     return ok
-
-
-def make_strategy(options):
-    if options.strategy == "graph":
-        return GraphStrategy(options)
-    if options.strategy == "epa":
-        from ncfix.correct.epa_strategy import EpaStrategy  # loads coal/CoACD only when asked
-
-        return EpaStrategy(options)
-    raise NotImplementedError(options.strategy)
-

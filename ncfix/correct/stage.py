@@ -41,8 +41,12 @@ import numpy as np
 from ncfix.collision.checker import Checker
 from ncfix.collision.deposit import BeadField, BeadStore
 from ncfix.collision.path import MoveHits, Moves, PathChecker
-from ncfix.collision.stage import MotionRows, check_placement
+from ncfix.collision.stage import MotionRows, check_placement, collision_entry
+from ncfix.correct.extrusion import follow
+from ncfix.correct.solve import Episode, Solution
 from ncfix.geometry.frames import angle_between_deg
+from ncfix.nc.emit import printed_decimals, word_kind
+from ncfix.nc.modal import MM_PER_INCH
 
 
 @dataclass
@@ -260,6 +264,10 @@ class CorrectStage:
             self._beads_moved_by = {k: v for k, v in self._beads_moved_by.items() if first is not None and k >= first}
         return out
 
+    def rechecks(self) -> Rechecks:
+        """A fresh re-check of one episode's moves (``Episode.checks``)."""
+        return Rechecks(self)
+
     def _moves(self, a: int, b: int) -> Moves:
         """Rows a..b-1 as moves from their current (possibly corrected) predecessors."""
         r = self.rows
@@ -424,13 +432,9 @@ class CorrectStage:
 
     def _solve(self, first: int, last: int, collided: dict[int, dict]) -> None:
         """Solve the episode (levels first..last), record its collisions, apply its words."""
-        from ncfix.correct.solve import Episode
-
         # An arc's centre is tied to its end points and (I J K) to its start: ncfix does not move
         # them, so an episode that holds an arc, or ends where one starts, stays as programmed.
         if np.isfinite(self.rows.arc[first:min(last + 2, len(self.rows)), 3]).any():
-            from ncfix.correct.solve import Solution
-
             solution = Solution(self.rows.words[first:last + 1].copy(), sorted(collided),
                                 {row: "an arc (G2/G3) is in the way: ncfix does not re-orient arc blocks "
                                  "or the blocks next to them" for row in collided})
@@ -497,8 +501,6 @@ class CorrectStage:
     def _collision_entries(self, rows: np.ndarray, hits: MoveHits) -> dict[int, dict]:
         """Report entries of colliding rows (hits: detection from row ``self.final`` on;
         ``collision_entry``): the move's poses are the detection's (``Detected.poses``)."""
-        from ncfix.collision.stage import collision_entry
-
         out = {}
         ends = np.append(hits.first[1:], len(hits.C)) if hits.first is not None else None
         for row in rows:
@@ -529,9 +531,6 @@ class CorrectStage:
         line's units: those values are rounded the same way here, the rest are the programmed. Solutions are
         checked, and later rows detected, as written, so a fresh check of the output decides as
         the fix did. Incremental (G91) rows are left as computed (the writer prints increments)."""
-        from ncfix.nc.emit import printed_decimals, word_kind
-        from ncfix.nc.modal import MM_PER_INCH
-
         out = np.array(words, dtype=np.float64)
         profile = self.profile
         letters = profile.kinematics.letters
@@ -580,7 +579,7 @@ class CorrectStage:
         before = self.path.forward(start, r.tcp[rows[:1]])[1] if np.isfinite(start).all() else N1[:1]
         prev = np.vstack([before, N1[:-1]])
         step = angle_between_deg(N1, prev)
-        ref = self.checker.reference
+        ref = self.checker.exact
         for i in np.nonzero(changed)[0]:
             row = int(rows[i])
             chunk = self.held[int(r.chunk[row]) - self.first_serial]
@@ -609,8 +608,6 @@ class CorrectStage:
             s = self.report.summary
             s["max_tilt_deg"] = max(s["max_tilt_deg"], round(float(tilt[i]), 4))
             s["max_step_deg"] = max(s["max_step_deg"], round(float(step[i]), 4))
-        from ncfix.correct.extrusion import follow
-
         if self.options.pivot == "tip":  # P moved: E and inverse-time F of the moves whose length changed
             follow(self, first, last)
 
@@ -727,6 +724,6 @@ def near_beads(checker: Checker, lo: np.ndarray, hi: np.ndarray, poses: list, re
     C = np.concatenate([poses[i][0] for i in idx])
     R = np.concatenate([poses[i][1] for i in idx])
     lin = np.repeat(reach[idx], count)
-    touched = checker._undecided_batched(checker.dep_tree, bead_field.lower_bound, C, R, lin, np.zeros(len(C)))
+    touched = checker.deposit_balls_near(bead_field.lower_bound, C, R, lin)
     out[idx[np.logical_or.reduceat(touched, np.cumsum(count) - count)]] = True
     return out

@@ -9,6 +9,7 @@ sort lexicographically, so ``np.unique`` on it gives the same cells in the same 
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 # Above this many cells in the rows' bounding box the flat key could overflow: keep the rows.
 _MAX_SPAN = 1 << 62
@@ -80,14 +81,9 @@ def _first_of_keys(key):  # pragma: no cover - compiled
     return out[:k]
 
 
-try:
-    from numba import njit as _njit
-
-    _box = _njit(cache=True, nogil=True)(_box)
-    _keys = _njit(cache=True, nogil=True)(_keys)
-    _first_of_keys = _njit(cache=True, nogil=True)(_first_of_keys)
-except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
-    pass
+_box = njit(cache=True, nogil=True)(_box)
+_keys = njit(cache=True, nogil=True)(_keys)
+_first_of_keys = njit(cache=True, nogil=True)(_first_of_keys)
 
 
 def group_cells(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

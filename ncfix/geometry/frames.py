@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -54,12 +55,7 @@ def _rodrigues(a, b, out):  # pragma: no cover - compiled
                 out[i, r, s] = (1.0 if r == s else 0.0) + k[r][s] + kk * scale
 
 
-try:
-    from numba import njit as _njit
-
-    _rodrigues = _njit(cache=True, nogil=True)(_rodrigues)
-except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
-    pass
+_rodrigues = njit(cache=True, nogil=True)(_rodrigues)
 
 
 def rotation_from_z(n: np.ndarray) -> np.ndarray:

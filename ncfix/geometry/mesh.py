@@ -24,6 +24,7 @@ import trimesh
 from ncfix.errors import GeometryError
 from ncfix.geometry.distance import point_mesh_distance
 from ncfix.geometry.frames import rotation_between
+from ncfix.geometry.place import parse
 from ncfix.geometry.tolerances import TOLERANCES
 
 Role = Literal["head", "part"]
@@ -66,8 +67,6 @@ def load_mesh(path: str | Path, role: Role | Literal["platform"], base: np.ndarr
         role = "part"
     placement = None
     if not isinstance(path, Path):
-        from ncfix.geometry.place import parse
-
         placement, problem = parse(str(path))
         if problem:
             raise GeometryError(f"{option} {str(path)!r}: {problem}",

@@ -14,7 +14,7 @@ EZ = np.array([0.0, 0.0, 1.0])
 
 
 class HeadHead(PositionTransform):
-    def __init__(self, pivot_length_mm: float = 0.0):
+    def __init__(self, pivot_length_mm: float = 0.0) -> None:
         self.pivot_length_mm = float(pivot_length_mm)
 
     def _shift(self, r1, r2):

@@ -9,6 +9,8 @@ o = (0, 0, 0.3), c = 0, L = 77.36 (s3-ring-kinematics.md).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from ncfix.kinematics.rotary import PositionTransform
@@ -17,8 +19,8 @@ EZ = np.array([0.0, 0.0, 1.0])
 
 
 class HeadTable(PositionTransform):
-    def __init__(self, table_centre_mm=(0.0, 0.0, 0.0), pivot_length_mm: float = 0.0,
-                 part_origin_mm=(0.0, 0.0, 0.0)):
+    def __init__(self, table_centre_mm: Sequence[float] = (0.0, 0.0, 0.0), pivot_length_mm: float = 0.0,
+                 part_origin_mm: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
         self.c = np.asarray(table_centre_mm, dtype=np.float64)
         self.pivot_length_mm = float(pivot_length_mm)
         self.o = np.asarray(part_origin_mm, dtype=np.float64)

@@ -33,7 +33,7 @@ class PositionTransform:
 class TwoAxisChain:
     """Kinematics of a machine with linear X, Y, Z and two rotary axes (see module docstring)."""
 
-    def __init__(self, axes: tuple[RotaryAxis, RotaryAxis], transform: PositionTransform):
+    def __init__(self, axes: tuple[RotaryAxis, RotaryAxis], transform: PositionTransform) -> None:
         self.axes = axes
         self.transform = transform
         self.letters = ("X", "Y", "Z", axes[0].letter, axes[1].letter)

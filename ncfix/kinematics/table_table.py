@@ -9,13 +9,16 @@ c_s = 0, d = (0, 0, 40.5), c_p = 0 (measurements.md).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from ncfix.kinematics.rotary import PositionTransform
 
 
 class TableTable(PositionTransform):
-    def __init__(self, centre_first_mm=(0.0, 0.0, 0.0), offset_mm=(0.0, 0.0, 0.0), centre_primary_mm=(0.0, 0.0, 0.0)):
+    def __init__(self, centre_first_mm: Sequence[float] = (0.0, 0.0, 0.0), offset_mm: Sequence[float] = (0.0, 0.0, 0.0),
+                 centre_primary_mm: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
         self.c_s = np.asarray(centre_first_mm, dtype=np.float64)
         self.d = np.asarray(offset_mm, dtype=np.float64)
         self.c_p = np.asarray(centre_primary_mm, dtype=np.float64)

@@ -15,7 +15,7 @@ from ncfix.kinematics.base import Unreachable
 
 
 class ToolVector:
-    def __init__(self, vector_letters: tuple[str, str, str], max_tilt_deg: float = 180.0):
+    def __init__(self, vector_letters: tuple[str, str, str], max_tilt_deg: float = 180.0) -> None:
         self.letters = ("X", "Y", "Z") + tuple(vector_letters)
         self.orientation_letters = tuple(vector_letters)
         self.max_tilt_deg = float(max_tilt_deg)

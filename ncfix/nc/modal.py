@@ -25,7 +25,6 @@ from ncfix.nc.block import Block, ModalState
 from ncfix.nc.chunk import Chunk
 from ncfix.nc.lexer import WORD_RE, code_of, parse_number
 from ncfix.nc.orientation import BlockWords, foreign_word_error, owned_words, vocabulary
-from ncfix.nc.plain import PlainReader
 from ncfix.nc.plain_jit import PlainReaderJit
 from ncfix.profiles import Profile
 
@@ -113,8 +112,7 @@ class Interpreter:
         self._plain_cols = {letter: i for i, letter in enumerate(plain_letters)}
         self._plain_axis_cols = [self._plain_cols[letter] for letter in kin.letters]
         self._fast_ok = profile.dialect == "iso" and all(len(letter) == 1 for letter in kin.letters)
-        reader = PlainReaderJit if PlainReaderJit.available else PlainReader
-        self._plain = reader(plain_letters) if self._fast_ok else None
+        self._plain = PlainReaderJit(plain_letters) if self._fast_ok else None
         # Orientation words of other profiles (ncfix.nc.orientation): an error, never ignored. Plain
         # lines hold only this profile's letters, so only the full reader looks for them.
         self._foreign = BlockWords(vocabulary() - owned_words(profile))

@@ -82,7 +82,7 @@ def builtin_profiles() -> tuple[Profile, ...]:
     return tuple(load_profile(name) for name in builtin_names())
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _owners_of(word: str) -> Owners:
     profiles = builtin_profiles()
     return Owners(tuple(p.name for p in profiles if word in orientation_words(p)),

@@ -1,19 +1,16 @@
 """The plain-line reader compiled with numba: one pass over the bytes of a chunk.
 
 Same contract and same results as :class:`ncfix.nc.plain.PlainReader` (a test runs both over the
-corpus); used when numba is installed, compiled once and cached on disk.
+corpus); compiled once and cached on disk.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from ncfix.nc.plain import MAX_DIGITS, PlainParse, PlainReader
 
-try:
-    from numba import njit
-except ImportError:  # pragma: no cover - numba is a declared dependency; this keeps the fallback honest
-    njit = None
 
 _POW10 = 10.0 ** np.arange(MAX_DIGITS + 1)
 
@@ -92,8 +89,6 @@ def _scan(data, starts, ends, column, g_column, pow10, plain, neutral, values): 
 
 class PlainReaderJit(PlainReader):
     """Drop-in for PlainReader (see the module docstring)."""
-
-    available = njit is not None
 
     def __init__(self, letters: tuple[str, ...]):
         super().__init__(letters)

@@ -17,7 +17,11 @@ containment test, without their per-call cost.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
+from ncfix import cache
+from ncfix.collision.split import map_runs
+from ncfix.collision.voxelize import EDT_SLACK_MM, distance_transform, voxelize
 from ncfix.memory import ensure_fits, grid_cells
 
 # The sign grid's cell edge (mm): a point farther than half its diagonal from the surface takes
@@ -28,12 +32,12 @@ SIGN_SLACK_MM = 1e-4
 # Cell lists hold at most this many cells: a large mesh gets larger cells (``_cell_lists``).
 MAX_CELLS = 4_000_000
 # The code a NearSurface comes from: editing any of these files makes every cached one a miss.
-NEAR_SOURCES = ("ncfix.geometry.near", "ncfix.collision.voxelize", "ncfix.collision.grid", "ncfix.geometry.tolerances")
+NEAR_SOURCES = ("ncfix.collision.near", "ncfix.collision.voxelize", "ncfix.collision.grid", "ncfix.geometry.tolerances")
 _NEAR_ARRAYS = ("triangles", "cap_mm", "cell_mm", "lo", "dims", "start", "listed", "inside", "sign_lo", "sign_pitch",
                 "depth")
 
 
-def _tri_closest(px, py, pz, t):  # pragma: no cover - compiled
+def tri_closest(px, py, pz, t):  # pragma: no cover - compiled
     """The point of triangle t (3, 3) closest to (px, py, pz) (Ericson 5.1.5)."""
     ax, ay, az = t[0, 0], t[0, 1], t[0, 2]
     abx, aby, abz = t[1, 0] - ax, t[1, 1] - ay, t[1, 2] - az
@@ -86,7 +90,7 @@ def _tri_closest(px, py, pz, t):  # pragma: no cover - compiled
 
 def _tri_d2(px, py, pz, t):  # pragma: no cover - compiled
     """Squared distance from (px, py, pz) to triangle t (3, 3)."""
-    qx, qy, qz = _tri_closest(px, py, pz, t)
+    qx, qy, qz = tri_closest(px, py, pz, t)
     return (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2
 
 
@@ -292,16 +296,9 @@ def _first_touch_kernel(points, radii, inside_check, group, n_groups, tris, lo, 
     return first, tested
 
 
-try:
-    from numba import njit as _njit
-
-    _jit = _njit(cache=True, nogil=True)
-except ImportError:  # pragma: no cover - numba is a dependency; plain Python is slow but right
-    def _jit(f):
-        return f
-
+_jit = njit(cache=True, nogil=True)
 # Compiled in dependency order: a compiled loop calls the compiled helpers by their module names.
-_tri_closest = _jit(_tri_closest)
+tri_closest = _jit(tri_closest)
 _tri_d2 = _jit(_tri_d2)
 _winding = _jit(_winding)
 _cells_kernel = _jit(_cells_kernel)
@@ -358,8 +355,6 @@ def surface_distances(triangles: np.ndarray, points: np.ndarray, cap_mm: float, 
     a larger cap (``FAR_FACTOR``), and past the last one every triangle: the same minimum over the
     same triangle distances either way, so ``cap_mm`` only sets the cost. The lists cover only the
     points' box. Runs of points go to the machine's cores."""
-    from ncfix.collision.split import map_runs
-
     tris = np.ascontiguousarray(triangles, dtype=np.float64)
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     out = np.empty(len(pts), dtype=np.float64)
@@ -408,8 +403,6 @@ class NearSurface:
         self.lo, self.dims, self.start, self.listed, self.cell_mm = _cell_lists(self.triangles, self.cap_mm,
                                                                                 float(cell_mm))
         # The sign grid: cell-centre occupancy (the column-parity voxelizer) at SIGN_PITCH_MM.
-        from ncfix.collision.voxelize import voxelize
-
         vertices, faces = np.unique(self.triangles.reshape(-1, 3), axis=0, return_inverse=True)
         bounds = np.array([vertices.min(axis=0), vertices.max(axis=0)])
         ensure_fits(f"the exact test's sign grid of the head (at {SIGN_PITCH_MM:g} mm)",
@@ -427,8 +420,6 @@ class NearSurface:
         jitter); one inside at most that far deep, as the segment to the outside centre crosses
         the surface."""
         if self._depth is None:
-            from ncfix.collision.grid import EDT_SLACK_MM, distance_transform
-
             d = distance_transform(self.inside, self.sign_pitch) if self.inside.any() else \
                 np.zeros(self.inside.shape, dtype=np.float32)
             self._depth = np.ascontiguousarray(d + np.float32(SIGN_SLACK_MM + EDT_SLACK_MM), dtype=np.float32)
@@ -457,8 +448,6 @@ def cached_near_surface(triangles: np.ndarray, cap_mm: float, cell_mm: float = 2
                         cache_dir: str | None = None, name: str = "the head") -> NearSurface:
     """``NearSurface(triangles, cap_mm, cell_mm)`` with its depth bound made, read from the on-disk
     cache (``ncfix.cache``) when it was built before from the same triangles, sizes and code."""
-    from ncfix import cache
-
     tris = np.ascontiguousarray(triangles, dtype=np.float64)
     key = cache.make_key("near", tris, float(cap_mm), float(cell_mm), cache.fingerprint(*NEAR_SOURCES),
                          {package: cache.version(package) for package in ("numpy", "edt", "scipy")})

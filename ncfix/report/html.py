@@ -9,7 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from ncfix.report import Report, rescaled_note
+from ncfix.report import CONTEXT_LINES, Report, rescaled_note
+from ncfix.version import __version__
 
 TABLE_ROWS = 2_000  # rows per table; the JSON report lists all
 SCROLL_ROWS = 15  # longer tables scroll in a box of about this height
@@ -338,14 +339,10 @@ def _setting(value: Any) -> str:
 
 
 def _context_lines() -> int:
-    from ncfix.report import CONTEXT_LINES
-
     return CONTEXT_LINES
 
 
 def _version() -> str:
-    from ncfix import __version__
-
     return __version__
 
 

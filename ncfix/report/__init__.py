@@ -9,7 +9,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ncfix import __version__
+from ncfix.fileio import atomic_output, atomic_write_text
+from ncfix.version import __version__
 
 if TYPE_CHECKING:
     import trimesh
@@ -345,8 +346,6 @@ class Report:
         }
 
     def write_json(self, path: str) -> None:
-        from ncfix.fileio import atomic_write_text
-
         atomic_write_text(path, json.dumps(self.to_json(), indent=2, default=_json_default) + "\n")
 
     def unified_diff(self, source: str, target: str) -> str:
@@ -367,8 +366,6 @@ class Report:
         return "".join(out)
 
     def write_diff(self, path: str, source: str, target: str) -> None:
-        from ncfix.fileio import atomic_output
-
         with atomic_output(path) as handle:
             handle.write(self.unified_diff(source, target).encode("latin-1"))
 
