@@ -49,7 +49,7 @@ def _head_lb(x, y, z, dist, origin, pitch, box, margin):  # pragma: no cover - c
 
 
 def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
-            beads, bseq, cell_start, cell_beads, glo, gcell, gdims,
+            beads, bseq, brad, cell_start, cell_beads, glo, gcell, gdims,
             hdist, horigin, hpitch, hbox, hmargin,
             tris, nlo, ncell, ndims, ncap, nstart, nlisted, slo, spitch, inside, sdepth,
             bead_r, clearance, allowance, rho, deepest):  # pragma: no cover - compiled
@@ -61,6 +61,7 @@ def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
     mark = np.full(beads.shape[0], -1, np.int64)
     buf = np.empty((beads.shape[0], 3))
     buf_need = np.empty(beads.shape[0])
+    buf_r = np.empty(beads.shape[0])
     buf_lb = np.empty(beads.shape[0])
     buf_sd = np.empty(beads.shape[0])
     half = 0.5 * gcell + CELL_SLACK_MM  # a cell's half edge, with the slack of its beads' binning
@@ -115,7 +116,7 @@ def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
                             lz = R[p, 0, 2] * ex + R[p, 1, 2] * ey + R[p, 2, 2] * ez
                             # A head point at distance d from the tip moves at most lin + ang·d
                             # between samples; a bead laid at this very sample gets no margin.
-                            need = bead_r + clearance
+                            need = brad[b] + clearance  # its own radius (at most bead_r)
                             if bseq[b] != seq[p]:
                                 swept = lin[p] + ang[p] * rho
                                 near = lin[p] + ang[p] * (np.sqrt(lx * lx + ly * ly + lz * lz) + need + swept)
@@ -127,6 +128,7 @@ def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
                                 continue
                             buf[k, 0], buf[k, 1], buf[k, 2] = lx, ly, lz
                             buf_need[k] = need
+                            buf_r[k] = brad[b]
                             buf_lb[k] = lb
                             k += 1
         candidates[p] = k
@@ -140,24 +142,26 @@ def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
                       ncap, nstart, nlisted, slo, spitch, inside):
                 hit[p] = True
                 if deepest:  # the pose's clearance: the deepest of its candidates
-                    # A lower bound on each one's signed distance: lb outside (lb > 0), minus the
-                    # depth bound inside; smallest first, until the bound passes the best found.
+                    # A lower bound on each one's clearance (its signed distance minus its
+                    # radius): lb outside (lb > 0), minus the depth bound inside; smallest first,
+                    # until the bound passes the best found.
                     for u in range(k):
-                        buf_sd[u] = buf_lb[u] if buf_lb[u] > 0.0 else \
-                            -depth_bound(buf[u, 0], buf[u, 1], buf[u, 2], slo, spitch, sdepth)
+                        buf_sd[u] = (buf_lb[u] if buf_lb[u] > 0.0 else
+                                     -depth_bound(buf[u, 0], buf[u, 1], buf[u, 2], slo, spitch, sdepth)) - buf_r[u]
                     by_sd = np.argsort(buf_sd[:k], kind="mergesort")
                     best = np.inf
                     for u in range(k):
                         v = by_sd[u]
                         if buf_sd[v] >= best:
                             break
-                        if best < 0.0:  # only a point deeper than the best can change it
-                            sd = _signed_distance_below(buf[v, 0], buf[v, 1], buf[v, 2], buf_lb[v] > 0.0, best, tris,
-                                                        nlo, ncell, ndims, ncap, nstart, nlisted, slo, spitch, inside)
+                        if best + buf_r[v] < 0.0:  # only a point deeper than the best can change it
+                            sd = _signed_distance_below(buf[v, 0], buf[v, 1], buf[v, 2], buf_lb[v] > 0.0,
+                                                        best + buf_r[v], tris, nlo, ncell, ndims, ncap, nstart,
+                                                        nlisted, slo, spitch, inside)
                         else:
                             sd = _signed_distance(buf[v, 0], buf[v, 1], buf[v, 2], buf_lb[v] > 0.0, tris, nlo, ncell,
                                                   ndims, ncap, nstart, nlisted, slo, spitch, inside)
-                        best = min(best, sd)
+                        best = min(best, sd - buf_r[v])
                     depth[p] = best
                 break
     return hit, depth, candidates, tested
@@ -249,9 +253,11 @@ def _candidates_kernel(C, R, cc, cr, counts, starts, members, beads, need, allow
 
 class BeadBuckets:
     """Beads (the store's exact ones and the window's pending ones, with the sequence number from
-    which each is seen: -1 = always) in a bucket grid over the region a batch of queries covers."""
+    which each is seen: -1 = always, and the radius of the sphere each is held as) in a bucket
+    grid over the region a batch of queries covers."""
 
-    def __init__(self, beads: np.ndarray, seq: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+    def __init__(self, beads: np.ndarray, seq: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                 radii: np.ndarray | float = 0.0):
         beads = np.ascontiguousarray(beads, dtype=np.float64).reshape(-1, 3)
         lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
         # The beads inside [lo, hi] (into the beads given, ascending) are those inside the box cut
@@ -267,6 +273,9 @@ class BeadBuckets:
         self.dims = (np.floor(extent / cell) + 1).astype(np.int64)
         self.beads = np.ascontiguousarray(beads[self.index])
         self.seq = np.ascontiguousarray(np.asarray(seq, dtype=np.int64)[self.index])
+        radii = np.asarray(radii, dtype=np.float64)
+        self.radii = np.ascontiguousarray(np.broadcast_to(radii, (len(beads),))[self.index] if radii.ndim else
+                                          np.full(len(self.index), float(radii)))
         # A compiled counting sort: what np.argsort(flat, kind="stable") and np.bincount gave.
         self.cell_beads, self.cell_start = _sort_by_cell(self.beads, lo, float(cell), self.dims)
 
@@ -324,8 +333,9 @@ except ImportError:  # pragma: no cover - numba is a dependency; plain Python is
 def first_bead_hits(C, R, lin, ang, seq, node_pose, node_c, node_r, node_reach, buckets: BeadBuckets,
                     head_grid, near: NearSurface, *, bead_r: float, clearance: float, allowance: float,
                     rho: float, deepest: bool = True):
-    """Per pose (n): hit (bool), with ``deepest`` the smallest signed distance from a bead centre it
-    sees to the clipped head (+inf where free or not ``deepest``; minus the radius: its clearance),
+    """Per pose (n): hit (bool), with ``deepest`` its clearance: the smallest signed distance from a
+    bead centre it sees to the clipped head minus that bead's radius (``buckets.radii``, at most
+    ``bead_r``, which bounds the search) (+inf where free or not ``deepest``),
     the candidate beads it had after the filters, and the beads tested exactly (module doc).
     node_pose (m,) ascending: the pose of each failing node; node_c (m, 3) head-frame centres,
     node_r / node_reach (m,) radius and reach."""
@@ -342,7 +352,7 @@ def first_bead_hits(C, R, lin, ang, seq, node_pose, node_c, node_r, node_reach, 
     def run(lo, hi):  # poses lo..hi-1: node_start[lo..hi] still index the whole node arrays
         return _kernel(
             C[lo:hi], R[lo:hi], lin[lo:hi], ang[lo:hi], seq[lo:hi], node_start[lo:hi + 1], node_c, node_r,
-            node_reach, buckets.beads, buckets.seq, buckets.cell_start, buckets.cell_beads, buckets.lo,
+            node_reach, buckets.beads, buckets.seq, buckets.radii, buckets.cell_start, buckets.cell_beads, buckets.lo,
             float(buckets.cell), buckets.dims, head_grid.dist_mm, horigin, float(head_grid.pitch_mm), hbox,
             float(head_grid.margin_mm), near.triangles, near.lo, near.cell_mm, near.dims, near.cap_mm, near.start,
             near.listed, near.sign_lo, near.sign_pitch, near.inside, sdepth,
