@@ -120,9 +120,10 @@ def test_straight_moves_keep_the_stated_bead():
 
 
 def test_the_exact_test_holds_each_bead_at_its_own_radius_as_the_reference_does():
-    """Poses of the sample head about the loop: the checker's exact test (with the loop's thin
-    beads) agrees with the exact reference (coal, each bead at its radius), pose by pose; and
-    some poses that the stated bead would hit are free of the strand."""
+    """Poses of the sample head about the loop: the checker's exact test and the corrector's
+    candidate test (with the loop's thin beads) agree with the exact reference (coal, each bead at
+    its radius), pose by pose; and some poses that the stated bead would hit are free of the
+    strand."""
     from ncfix.collision.checker import Checker
     from ncfix.collision.head import cached_head_model
     from ncfix.geometry.frames import minimal_rotation
@@ -156,6 +157,9 @@ def test_the_exact_test_holds_each_bead_at_its_own_radius_as_the_reference_does(
     exact_stated = np.array([ref.bead_collides(c, r, beads, bead.radius_mm) for c, r in zip(C, R)])
     np.testing.assert_array_equal(got, exact)
     np.testing.assert_array_equal(got_stated, exact_stated)
+    # the corrector's candidate test (``poses_free``: a batch of orientations) holds them alike
+    free = ck.poses_free(C, R, seq, thin, none, np.zeros(0, dtype=np.int64))
+    np.testing.assert_array_equal(free, ~exact)
     assert exact.sum() >= 10  # the test exercises contacts with the strand
     assert (exact_stated & ~exact).sum() >= 10  # and poses only the stated bead would hit
 

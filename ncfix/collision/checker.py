@@ -552,7 +552,7 @@ class Checker:
             if cells is None:
                 continue
             ok, tested = candidates_free(C[sel], R[sel], cells, self.head_grid, self.near_head, need=need,
-                                         allowance=ta)
+                                         allowance=ta, clearance=self.clearance_mm)
             self.stats.exact_bead_tests += tested
             free[sel] &= ok
         return free
@@ -587,8 +587,11 @@ class Checker:
             B = np.concatenate([g[0] for g in groups])
             counts = np.concatenate([g[1] for g in groups])
             starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+            # each bead's own radius (the stated one where none was given: the pending beads')
+            r = self.bead_radius_mm
+            own = np.concatenate([np.full(len(g[0]), r) if g[4] is None else g[4] for g in groups])
             cells = (B, np.arange(len(B)), counts, starts, np.concatenate([g[2] for g in groups]),
-                     np.concatenate([g[3] for g in groups]))
+                     np.concatenate([g[3] for g in groups]), own)
         if len(tips) >= TIP_CACHE_MAX:
             tips.clear()
         tips[key] = (centre.copy(), radius, cells)

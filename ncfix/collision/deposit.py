@@ -386,7 +386,7 @@ class BeadStore:
         out = []
         for level in self._levels:
             if cell_mm not in level[2]:
-                level[2][cell_mm] = BeadCells(level[0], cell_mm)
+                level[2][cell_mm] = BeadCells(level[0], cell_mm, level[4])
             out.append(level[2][cell_mm])
         return out
 
@@ -412,12 +412,14 @@ class BeadStore:
 class BeadCells:
     """Beads grouped in cubes of ``cell_mm``: each cell's beads (consecutive in ``beads``, in the
     order given: laying order), its centre (their mean) and radius (the farthest of them from it),
-    and a k-d tree of the centres (built on the first ``near``)."""
+    and a k-d tree of the centres (built on the first ``near``). ``radii``: each bead's own radius
+    (``BeadStore.add``), in ``bead_radii`` in the beads' order (None: none given)."""
 
-    def __init__(self, points_mm: np.ndarray, cell_mm: float):
+    def __init__(self, points_mm: np.ndarray, cell_mm: float, radii_mm: np.ndarray | None = None):
         points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
         _, order, self.counts = group_cells(np.floor(points / cell_mm).astype(np.int64))
         self.beads = points[order]
+        self.bead_radii = None if radii_mm is None else np.asarray(radii_mm, dtype=np.float64)[order]
         self.starts = np.concatenate([[0], np.cumsum(self.counts)[:-1]]).astype(np.int64)
         if len(points):
             self.centre = np.add.reduceat(self.beads, self.starts, axis=0) / self.counts[:, None]
@@ -447,14 +449,17 @@ class BeadCells:
             return self.take()
         return self.take(self.near(centre_mm, radius_mm))
 
-    def take(self, cells: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def take(self, cells: np.ndarray | None = None) -> tuple:
         """(beads of these cells (m, 3), cell by cell, each in the order given; beads per cell (k,);
-        centres (k, 3); radii (k,)); every cell when None (the arrays kept here: not to be written)."""
+        centres (k, 3); radii (k,); the beads' own radii (m,) or None); every cell when None (the
+        arrays kept here: not to be written)."""
         if cells is None:
-            return self.beads, self.counts, self.centre, self.radius
+            return self.beads, self.counts, self.centre, self.radius, self.bead_radii
         counts = self.counts[cells]
         offs = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
-        return self.beads[np.repeat(self.starts[cells], counts) + offs], counts, self.centre[cells], self.radius[cells]
+        pick = np.repeat(self.starts[cells], counts) + offs
+        return (self.beads[pick], counts, self.centre[cells], self.radius[cells],
+                None if self.bead_radii is None else self.bead_radii[pick])
 
     @property
     def nbytes(self) -> int:

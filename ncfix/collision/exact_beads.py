@@ -176,14 +176,20 @@ except ImportError:  # pragma: no cover - numba is a dependency; plain Python is
     pass
 
 
-def candidates_free(C, R, cells, head_grid, near: NearSurface, *, need: float, allowance: float):
+def candidates_free(C, R, cells, head_grid, near: NearSurface, *, need: float, allowance: float,
+                    clearance: float = 0.0):
     """Per pose (n) of one tip (``Checker.deposit_free``): free of the beads in ``cells`` ((beads,
-    members, counts, starts, cell centres, cell radii), ``Checker._tip_cells``); and the beads
-    tested exactly. A cell the head grid's bound clears (or wholly below the allowance plane
-    by more than ``need``) clears its beads; a bead it cannot clear is tested exactly (a ball of
-    radius ``need`` against the clipped head, the centre's side checked where the bound allows it
-    inside), the most suspect first, and a pose stops at its first touching bead."""
-    B, members, counts, starts, cc, cr = cells
+    members, counts, starts, cell centres, cell radii[, each bead's radius]),
+    ``Checker._tip_cells``); and the beads tested exactly. A cell the head grid's bound clears (or
+    wholly below the allowance plane by more than ``need``, the largest bead's radius plus the
+    clearance) clears its beads; a bead it cannot clear is tested exactly (a ball of its own radius
+    plus ``clearance``, else ``need``, against the clipped head, the centre's side checked where
+    the bound allows it inside), the most suspect first, and a pose stops at its first touching
+    bead."""
+    B, members, counts, starts, cc, cr = cells[:6]
+    own = np.ascontiguousarray(cells[6], np.float64) + float(clearance) if len(cells) > 6 else \
+        np.full(len(B), float(need))
+    own = np.minimum(own, float(need))
     f64 = np.float64
     C, R = np.ascontiguousarray(C, f64).reshape(-1, 3), np.ascontiguousarray(R, f64).reshape(-1, 3, 3)
     hbox, horigin = np.ascontiguousarray(head_grid._box(), f64), np.asarray(head_grid.origin_mm, f64)
@@ -192,7 +198,8 @@ def candidates_free(C, R, cells, head_grid, near: NearSurface, *, need: float, a
         return _candidates_kernel(
             C[lo:hi], R[lo:hi], np.ascontiguousarray(cc, f64), np.ascontiguousarray(cr, f64),
             np.ascontiguousarray(counts, np.int64), np.ascontiguousarray(starts, np.int64),
-            np.ascontiguousarray(members, np.int64), np.ascontiguousarray(B, f64), float(need), float(allowance),
+            np.ascontiguousarray(members, np.int64), np.ascontiguousarray(B, f64), own, float(need),
+            float(allowance),
             head_grid.dist_mm, horigin, float(head_grid.pitch_mm), hbox, float(head_grid.margin_mm),
             near.triangles, near.lo, near.cell_mm, near.dims, near.cap_mm, near.start, near.listed,
             near.sign_lo, near.sign_pitch, near.inside)
@@ -203,7 +210,7 @@ def candidates_free(C, R, cells, head_grid, near: NearSurface, *, need: float, a
     return ~np.concatenate([p[0] for p in parts]), int(sum(p[1] for p in parts))
 
 
-def _candidates_kernel(C, R, cc, cr, counts, starts, members, beads, need, allowance,
+def _candidates_kernel(C, R, cc, cr, counts, starts, members, beads, own, need, allowance,
                        hdist, horigin, hpitch, hbox, hmargin,
                        tris, nlo, ncell, ndims, ncap, nstart, nlisted, slo, spitch, inside):  # pragma: no cover - compiled
     """(hit (n,), beads tested): ``candidates_free``'s loop (head-frame point of a world point q at
@@ -213,6 +220,7 @@ def _candidates_kernel(C, R, cc, cr, counts, starts, members, beads, need, allow
     tested = 0
     buf = np.empty((beads.shape[0], 3))
     buf_lb = np.empty(beads.shape[0])
+    buf_need = np.empty(beads.shape[0])
     for p in range(n):
         k = 0
         for c in range(cc.shape[0]):
@@ -226,17 +234,19 @@ def _candidates_kernel(C, R, cc, cr, counts, starts, members, beads, need, allow
                 continue
             for j in range(starts[c], starts[c] + counts[c]):
                 b = members[j]
+                nb = own[b]  # this bead's radius plus the clearance (at most need)
                 ex, ey, ez = beads[b, 0] - C[p, 0], beads[b, 1] - C[p, 1], beads[b, 2] - C[p, 2]
                 z = R[p, 0, 2] * ex + R[p, 1, 2] * ey + R[p, 2, 2] * ez
-                if not z + need > allowance:
+                if not z + nb > allowance:
                     continue
                 x = R[p, 0, 0] * ex + R[p, 1, 0] * ey + R[p, 2, 0] * ez
                 y = R[p, 0, 1] * ex + R[p, 1, 1] * ey + R[p, 2, 1] * ez
                 lb = _head_lb(x, y, z, hdist, horigin, hpitch, hbox, hmargin)
-                if lb > need:
+                if lb > nb:
                     continue
                 buf[k, 0], buf[k, 1], buf[k, 2] = x, y, z
                 buf_lb[k] = lb
+                buf_need[k] = nb
                 k += 1
         if k == 0:
             continue
@@ -244,8 +254,8 @@ def _candidates_kernel(C, R, cc, cr, counts, starts, members, beads, need, allow
         for t in range(k):
             i = order[t]
             tested += 1
-            if _touch(buf[i, 0], buf[i, 1], buf[i, 2], need, buf_lb[i] <= 0.0, tris, nlo, ncell, ndims, ncap,
-                      nstart, nlisted, slo, spitch, inside):
+            if _touch(buf[i, 0], buf[i, 1], buf[i, 2], buf_need[i], buf_lb[i] <= 0.0, tris, nlo, ncell, ndims,
+                      ncap, nstart, nlisted, slo, spitch, inside):
                 hit[p] = True
                 break
     return hit, tested
