@@ -576,11 +576,11 @@ class Checker:
         if got is not None and float(np.linalg.norm(centre - got[0])) + radius <= got[1]:
             return got[2]
         radius = radius + TIP_CACHE_SLACK_MM
-        groups = [level.gather(centre, radius) for level in
+        groups = [level.gather(centre, radius, radii=True) for level in
                   (store.cells(BEAD_CELL_MM) if store.count else [])]
         if len(pending):
             seen = pending[pending_seq <= key[0]]
-            groups.append(BeadCells(seen[np.linalg.norm(seen - centre, axis=1) <= radius], BEAD_CELL_MM).take())
+            groups.append(BeadCells(seen[np.linalg.norm(seen - centre, axis=1) <= radius], BEAD_CELL_MM).take(radii=True))
         groups = [g for g in groups if len(g[0])]
         cells = None
         if groups:

@@ -440,31 +440,35 @@ class BeadCells:
         far = np.linalg.norm(self.centre[idx] - centre_mm, axis=1) - self.radius[idx]
         return idx[far <= radius_mm]
 
-    def gather(self, centre_mm: np.ndarray, radius_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``take(near(centre_mm, radius_mm))``. A ball that holds every cell centre (the farthest
-        corner of their box closer than the radius) gets every cell without a query: the same
-        cells, in the same order, as ``near`` would give."""
+    def gather(self, centre_mm: np.ndarray, radius_mm: float, radii: bool = False) -> tuple:
+        """``take(near(centre_mm, radius_mm), radii)``. A ball that holds every cell centre (the
+        farthest corner of their box closer than the radius) gets every cell without a query: the
+        same cells, in the same order, as ``near`` would give."""
         corner = np.maximum(np.abs(self._lo - centre_mm), np.abs(self._hi - centre_mm))
         if float(np.sqrt(corner @ corner)) < radius_mm:
-            return self.take()
-        return self.take(self.near(centre_mm, radius_mm))
+            return self.take(None, radii)
+        return self.take(self.near(centre_mm, radius_mm), radii)
 
-    def take(self, cells: np.ndarray | None = None) -> tuple:
+    def take(self, cells: np.ndarray | None = None, radii: bool = False) -> tuple:
         """(beads of these cells (m, 3), cell by cell, each in the order given; beads per cell (k,);
-        centres (k, 3); radii (k,); the beads' own radii (m,) or None); every cell when None (the
-        arrays kept here: not to be written)."""
+        centres (k, 3); radii (k,)), with ``radii`` also the beads' own radii (m,) or None; every
+        cell when None (the arrays kept here: not to be written)."""
         if cells is None:
-            return self.beads, self.counts, self.centre, self.radius, self.bead_radii
+            out = (self.beads, self.counts, self.centre, self.radius)
+            return out + (self.bead_radii,) if radii else out
         counts = self.counts[cells]
         offs = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
         pick = np.repeat(self.starts[cells], counts) + offs
-        return (self.beads[pick], counts, self.centre[cells], self.radius[cells],
-                None if self.bead_radii is None else self.bead_radii[pick])
+        out = (self.beads[pick], counts, self.centre[cells], self.radius[cells])
+        if radii:
+            out += (None if self.bead_radii is None else self.bead_radii[pick],)
+        return out
 
     @property
     def nbytes(self) -> int:
         return int(self.beads.nbytes + self.counts.nbytes + self.starts.nbytes + self.centre.nbytes
-                   + self.radius.nbytes + (self.centre.nbytes if self._tree is not None else 0))
+                   + self.radius.nbytes + (self.centre.nbytes if self._tree is not None else 0)
+                   + (self.bead_radii.nbytes if self.bead_radii is not None else 0))
 
 
 class BeadField:
