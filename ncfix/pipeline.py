@@ -173,7 +173,8 @@ def build_stages(options: Options, profile: Profile, report: Report, box=None) -
     bead = BeadShape.stated(options.bead_radius, options.bead_width, options.bead_height, options.standoff)
     checker = Checker(head.mesh, model, parts, pitch_mm=options.pitch, clearance_mm=options.clearance,
                       bead_radius_mm=bead.radius_mm, tip_allowance_mm=options.tip_allowance,
-                      device=options.device, part_bounds_mm=reach_box, bead_drop_mm=bead.drop_mm)
+                      device=options.device, part_bounds_mm=reach_box, bead_drop_mm=bead.drop_mm,
+                      bead_shape=bead)
     if options.check:
         return [CheckStage(checker, profile, options, report, placed_parts=loaded_parts)]
     from ncfix.correct import strategies

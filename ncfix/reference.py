@@ -27,7 +27,8 @@ import coal
 import numpy as np
 import trimesh
 
-from ncfix.collision.deposit import axial_moves
+from ncfix.collision.deposit import (LOOP_PROBE, LOOP_RATIO, BeadShape, axial_moves, held_radius, loop_samples,
+                                     strand_along)
 from ncfix.collision.exact import ExactParts, bvh, clip_head
 from ncfix.collision.plough import ploughing_moves
 from ncfix.geometry.distance import point_mesh_distance, winding_numbers
@@ -102,8 +103,9 @@ class ExactReference(ExactParts):
         return best
 
     def bead_collides(self, tip_mm: np.ndarray, rotation: np.ndarray, centers_mm: np.ndarray,
-                      radius_mm: float) -> bool:
+                      radius_mm) -> bool:
         """Whether any bead sphere overlaps the head above the tip allowance (exact, early exit).
+        ``radius_mm``: one radius for every bead, or each bead's (m,).
 
         A bead farther than its radius outside one face plane of the clipped head's convex hull
         cannot touch the head; the others are tested exactly: coal sphere-vs-mesh for contact
@@ -116,16 +118,21 @@ class ExactReference(ExactParts):
         r = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
         local = (centers - c) @ r
         outside = (local @ self._hull_normals.T - self._hull_offsets).max(axis=1)
-        near = local[outside < radius_mm]
+        radii = np.broadcast_to(np.asarray(radius_mm, dtype=np.float64), (len(centers),))
+        close = outside < radii
+        near, near_r = local[close], radii[close]
         if len(near) == 0:
             return False
-        sphere = coal.Sphere(float(radius_mm))
         identity = coal.Transform3s()
-        for point in near:
+        spheres: dict = {}
+        for point, rad in zip(near, near_r):
+            sphere = spheres.get(float(rad))
+            if sphere is None:
+                sphere = spheres[float(rad)] = coal.Sphere(float(rad))
             result = coal.CollisionResult()
             if coal.collide(self._bead_bvh, identity, sphere, coal.Transform3s(np.eye(3), point), self.collision_request, result):
                 return True
-        inside = winding_numbers(near[outside[outside < radius_mm] < -radius_mm], self._bead_triangles) > 0.5
+        inside = winding_numbers(near[outside[close] < -near_r], self._bead_triangles) > 0.5
         return bool(inside.any())
 
     def signed_distance_to_clipped_head(self, points_head_mm: np.ndarray) -> np.ndarray:
@@ -165,6 +172,7 @@ def label_program(
     bead_spacing_mm: float = 0.25,
     deposit_codes: tuple[str, str] | None = None,
     bead_drop_mm: float = 0.0,
+    bead_shape=None,
 ) -> list[tuple[int, list[str]]]:
     """The exact answer for a program: (line, bodies) of every motion block whose pose collides.
 
@@ -174,7 +182,10 @@ def label_program(
     the beads laid before it, including the move that ends at it, as spheres ``bead_spacing_mm``
     apart along the path through P, each ``bead_drop_mm`` below it along the tool axis; a move
     along the axis (``deposit.axial_moves``) or one that ploughs through its own extrudate
-    (``plough.ploughing_moves``) lays one, at its lower end.
+    (``plough.ploughing_moves``) lays one, at its lower end. A move whose tip runs a
+    path LOOP_RATIO times its programmed length or longer (TCP off: the axes move linearly, P
+    does not) lays a thinner strand along the tip's path (``deposit.strand_along``, the sphere
+    radius ``deposit.held_radius``; bead_shape: the stated bead, default round of the radius).
     """
     profile = load_profile(machine)
     ref = ExactReference(head, parts, tip_allowance_mm=tip_allowance_mm)
@@ -196,7 +207,18 @@ def label_program(
             p[sel], n[sel], r[sel] = profile.kinematics.forward(words[sel], tcp=bool(flag))
     has_e = not np.isnan(chunk.e_delta).all()
     head_triangles = np.asarray(head.triangles, dtype=np.float64)
+    shape = bead_shape if bead_shape is not None else BeadShape(2.0 * bead_radius_mm, 2.0 * bead_radius_mm,
+                                                                 bead_drop_mm)
+
+    def tip_path(row: int, samples: int):
+        """P and N at even steps of the move into ``row``, the words moving linearly."""
+        t = np.arange(samples + 1) / samples
+        w = words[row - 1][None] + t[:, None] * (words[row] - words[row - 1])[None]
+        pp, nn, _ = profile.kinematics.forward(w, tcp=bool(tcp[row]))
+        return pp, nn, t
+
     beads = np.zeros((0, 3))
+    radii = np.zeros(0)
     out = []
     previous = None
     for row, i in enumerate(moving):
@@ -211,7 +233,8 @@ def label_program(
             n0, n1 = n[row - 1], n[row]
             ploughs = ploughing_moves(head_triangles, (previous + standoff_mm * n0)[None],
                                       (p[row] + standoff_mm * n1)[None], r[row - 1][None], r[row][None])[0]
-            if axial_moves(previous[None], p[row][None], n0[None], n1[None])[0] or ploughs:
+            lower_end = axial_moves(previous[None], p[row][None], n0[None], n1[None])[0] or ploughs
+            if lower_end:
                 low = row if float((p[row] - previous) @ (n0 + n1)) < 0 else row - 1
                 laid = (p[low] - bead_drop_mm * n[low])[None]
             else:
@@ -219,11 +242,27 @@ def label_program(
                 t = np.linspace(0.0, 1.0, len(laid))[:, None]
                 axis = n0 + t * (n1 - n0)
                 laid = laid - bead_drop_mm * axis / np.linalg.norm(axis, axis=1, keepdims=True)
+            rad = np.full(len(laid), bead_radius_mm)
+            chord = float(np.linalg.norm(p[row] - previous))
+            if not profile.is_vector and chunk.motion[i] == 1 and chord > 0 and not lower_end:
+                probe = np.linalg.norm(np.diff(tip_path(row, LOOP_PROBE)[0], axis=0), axis=1).sum()
+                if probe > LOOP_RATIO * chord:
+                    pp, _, t = tip_path(row, loop_samples(probe))
+                    got = strand_along(pp, t, chord, shape, bead_spacing_mm)
+                    if got is not None:
+                        tb, strand, drop = got
+                        w = words[row - 1][None] + tb[:, None] * (words[row] - words[row - 1])[None]
+                        pb, nb, _ = profile.kinematics.forward(w, tcp=bool(tcp[row]))
+                        thin = pb - drop * nb
+                        held = held_radius(strand, thin, bead_radius_mm)
+                        if held < bead_radius_mm:
+                            laid, rad = thin, np.full(len(thin), held)
             beads = np.vstack([beads, laid])
+            radii = np.concatenate([radii, rad])
         previous = p[row]
         tip = p[row] + standoff_mm * n[row]
         bodies = [f"part:{name}" for name, value in ref.part_clearances(tip, r[row]).items() if value < 0]
-        if len(beads) and bead_radius_mm > 0 and ref.bead_collides(tip, r[row], beads, bead_radius_mm):
+        if len(beads) and bead_radius_mm > 0 and ref.bead_collides(tip, r[row], beads, radii):
             bodies.append("deposit")
         if bodies:
             out.append((chunk.first_lineno + int(i), bodies))

@@ -143,3 +143,14 @@ def test_a_travel_through_the_printed_part_and_a_tilted_stretch_are_flagged_at_t
     assert end + 3 not in hits  # its descent beside the part is free
     # nothing else newly flagged: the tilted stretch, the block that turns back from it, the travel
     assert new <= set(STRETCH) | {STRETCH[-1] + 1, through}
+
+
+@pytest.mark.heavy
+@pytest.mark.xfail(strict=True, reason="the loops' strands are laid on the tip's path, where the nozzle of a later "
+                                       "block passes (docs/deposit.md 'Real prints')")
+@pytest.mark.parametrize("head", ["extruderHead_converted.stl", "extruderHead_original_converted.stl"])
+def test_the_whole_program_flags_nothing_with_either_head(head):
+    """The program printed: the recipe flags none of its blocks, with either of its heads."""
+    lines = corpus_path("multiaxis_3dp_motionplanning", "model_1_Gcode.txt").read_bytes().splitlines(keepends=True)
+    hits = _check(lines, head=str(corpus_path("multiaxis_3dp_motionplanning", head)))
+    assert not hits, sorted(hits)[:20]

@@ -49,7 +49,7 @@ import numpy as np
 import trimesh
 
 from ncfix.collision import descent
-from ncfix.collision.deposit import BeadCells, BeadField, BeadStore
+from ncfix.collision.deposit import BeadCells, BeadField, BeadShape, BeadStore
 from ncfix.collision.depth import DepthProbe
 from ncfix.collision.descent import HostTree
 from ncfix.collision.exact import ExactParts, clip_head
@@ -242,7 +242,7 @@ class Checker:
     def __init__(self, head: trimesh.Trimesh, model: HeadModel, parts: list[tuple[str, trimesh.Trimesh, bool]], *,
                  pitch_mm: float, clearance_mm: float = 0.0, bead_radius_mm: float = 1.0,
                  tip_allowance_mm: float = 1.0, device: str = "cpu", part_bounds_mm: np.ndarray | None = None,
-                 bead_drop_mm: float = 0.0) -> None:
+                 bead_drop_mm: float = 0.0, bead_shape: BeadShape | None = None) -> None:
         self.device = resolve_device(device)
         # The sphere-tree descent: compiled loops on the CPU (``descent``), torch batches elsewhere.
         self.compiled = self.device == "cpu"
@@ -251,6 +251,10 @@ class Checker:
         self.clearance_mm = float(clearance_mm)
         self.bead_radius_mm = float(bead_radius_mm)  # the sphere each bead is held as (deposit.BeadShape)
         self.bead_drop_mm = float(bead_drop_mm)  # bead centres lie this far below P along the tool axis
+        # The stated bead (deposit.BeadShape; None: round, of the bead radius): sizes the thinner
+        # strand of a looping tip (PathChecker).
+        self.bead_shape = bead_shape if bead_shape is not None else \
+            BeadShape(2.0 * self.bead_radius_mm, 2.0 * self.bead_radius_mm, self.bead_drop_mm)
         self.tip_allowance_mm = float(tip_allowance_mm)
         self.model = model
         self.head = head
@@ -552,7 +556,7 @@ class Checker:
             if cells is None:
                 continue
             ok, tested = candidates_free(C[sel], R[sel], cells, self.head_grid, self.near_head, need=need,
-                                         allowance=ta)
+                                         allowance=ta, clearance=self.clearance_mm)
             self.stats.exact_bead_tests += tested
             free[sel] &= ok
         return free
@@ -576,19 +580,22 @@ class Checker:
         if got is not None and float(np.linalg.norm(centre - got[0])) + radius <= got[1]:
             return got[2]
         radius = radius + TIP_CACHE_SLACK_MM
-        groups = [level.gather(centre, radius) for level in
+        groups = [level.gather(centre, radius, radii=True) for level in
                   (store.cells(BEAD_CELL_MM) if store.count else [])]
         if len(pending):
             seen = pending[pending_seq <= key[0]]
-            groups.append(BeadCells(seen[np.linalg.norm(seen - centre, axis=1) <= radius], BEAD_CELL_MM).take())
+            groups.append(BeadCells(seen[np.linalg.norm(seen - centre, axis=1) <= radius], BEAD_CELL_MM).take(radii=True))
         groups = [g for g in groups if len(g[0])]
         cells = None
         if groups:
             B = np.concatenate([g[0] for g in groups])
             counts = np.concatenate([g[1] for g in groups])
             starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+            # each bead's own radius (the stated one where none was given: the pending beads')
+            r = self.bead_radius_mm
+            own = np.concatenate([np.full(len(g[0]), r) if g[4] is None else g[4] for g in groups])
             cells = (B, np.arange(len(B)), counts, starts, np.concatenate([g[2] for g in groups]),
-                     np.concatenate([g[3] for g in groups]))
+                     np.concatenate([g[3] for g in groups]), own)
         if len(tips) >= TIP_CACHE_MAX:
             tips.clear()
         tips[key] = (centre.copy(), radius, cells)
@@ -615,7 +622,8 @@ class Checker:
 
     def sweep_deposit(self, C, R, lin, ang, cum_lin, cum_ang, seq, store: BeadStore, pending, pending_seq, *,
                       stamped: bool = False, move_of: np.ndarray | None = None,
-                      refine=None, clearances: bool = True, progress=None) -> tuple[np.ndarray, np.ndarray]:
+                      refine=None, clearances: bool = True, progress=None,
+                      pending_r: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Deposit hits (n,) and exact clearances (n,) with sweep margins (lin, ang) per pose and,
         given cum_lin / cum_ang, groups certified first. ``stamped``: the pending beads are in the
         store's field already (else they are overlaid for the call). ``move_of``: as in
@@ -624,7 +632,8 @@ class Checker:
         hits are the same and the kept beads' clearances not computed (-inf): such a hit with a
         sweep margin is then tested again without it before refining (with them, a hit whose own
         clearance is below the clearance is known to collide without that test). ``progress``: as in
-        ``sweep_parts``."""
+        ``sweep_parts``. ``pending_r``: the radius each pending bead is held as in the exact test
+        (None: the bead radius)."""
         n = len(C)
         hit = np.zeros(n, dtype=bool)
         clearance = np.full(n, np.inf)
@@ -653,7 +662,7 @@ class Checker:
                         lambda f, k=k: progress((k + f) / len(passes)))
                     hit[sel], clearance[sel] = self._exact_deposit(C[sel], R[sel], lin[sel], ang[sel], seq[sel],
                                                                    store, pending, pending_seq, bead_field, clearances,
-                                                                   progress=tick)
+                                                                   progress=tick, pending_r=pending_r)
                     # A pose whose own clearance is below the clearance collides whatever the sweep does
                     # (-inf: not computed, ``clearances`` False).
                     cl = clearance[sel]
@@ -662,29 +671,32 @@ class Checker:
                     if len(again):  # ... and so does one that hits without its sweep margin
                         zero = np.zeros(len(again))
                         own, _ = self._exact_deposit(C[again], R[again], zero, zero, seq[again], store, pending,
-                                                     pending_seq, bead_field, clearances=False)
+                                                     pending_seq, bead_field, clearances=False, pending_r=pending_r)
                         again = again[~own]
                     if len(again):
                         hit[again] = self._refined_deposit(refine, again, seq, store, pending, pending_seq,
-                                                           bead_field, REFINE_LEVELS)
+                                                           bead_field, REFINE_LEVELS, pending_r)
                         clearance[again[~hit[again]]] = np.inf
         return hit, clearance
 
-    def _refined_deposit(self, refine, idx, seq, store, pending, pending_seq, bead_field, levels: int):
+    def _refined_deposit(self, refine, idx, seq, store, pending, pending_seq, bead_field, levels: int,
+                         pending_r=None):
         """Deposit hits of samples idx from their finer samples (``levels`` deep); a finer sample
         sees the beads its sample sees (a superset of its own: conservative)."""
         C, R, lin, ang, parent, sub = refine.split(idx)
         sseq = np.asarray(seq)[idx][parent]
-        h, _ = self._exact_deposit(C, R, lin, ang, sseq, store, pending, pending_seq, bead_field, clearances=False)
+        h, _ = self._exact_deposit(C, R, lin, ang, sseq, store, pending, pending_seq, bead_field, clearances=False,
+                                   pending_r=pending_r)
         again = np.nonzero(h & (lin + ang > 0))[0]
         if levels > 1 and len(again):
-            h[again] = self._refined_deposit(sub, again, sseq, store, pending, pending_seq, bead_field, levels - 1)
+            h[again] = self._refined_deposit(sub, again, sseq, store, pending, pending_seq, bead_field, levels - 1,
+                                             pending_r)
         hit = np.zeros(len(idx), dtype=bool)
         np.logical_or.at(hit, parent, h)
         return hit
 
     def _exact_deposit(self, C, R, lin, ang, seq, store: BeadStore, pending, pending_seq, bead_field: BeadField,
-                       clearances: bool = True, progress=None):
+                       clearances: bool = True, progress=None, pending_r=None):
         """The exact deposit test of undecided poses (``_exact_kept``). Beads the store retired
         (BeadStore: only a field of them is left) cannot be tested exactly: a pose that their
         field cannot clear counts as a hit, with clearance 0 (errs toward "collides")."""
@@ -700,13 +712,13 @@ class Checker:
         for a in range(0, len(rest), EXACT_POSE_BATCH):
             sel = rest[a:a + EXACT_POSE_BATCH]
             hit[sel], clearance[sel] = self._exact_kept(C[sel], R[sel], lin[sel], ang[sel], seq[sel], store,
-                                                        pending, pending_seq, bead_field, clearances)
+                                                        pending, pending_seq, bead_field, clearances, pending_r)
             if progress is not None:
                 progress(min(a + EXACT_POSE_BATCH, len(rest)) / len(rest))
         return hit, clearance
 
     def _exact_kept(self, C, R, lin, ang, seq, store: BeadStore, pending, pending_seq, bead_field: BeadField,
-                    clearances: bool = True):
+                    clearances: bool = True, pending_r=None):
         """The exact test against the kept beads (``exact_beads``): candidate beads near the failing
         nodes (``CANDIDATE_LEVEL``), the sequence filter, the allowance plane, the head grid, then the exact test;
         the clearance of each hit pose is that of its deepest bead (unless not ``clearances``)."""
@@ -735,32 +747,41 @@ class Checker:
         pose, node = pose[order], node[order]
         host = self.dep_tree.host
         node_c, radii, reach = host.center[node], host.radius[node], host.reach[node]
-        beads, bseq = self._bead_arrays(store, pending, pending_seq)
+        beads, bseq, brad = self._bead_arrays(store, pending, pending_seq, pending_r)
         # Only the beads in the region the failing nodes' query balls cover are bucketed (with a
         # slack: the bead kernel places the balls in arithmetic of its own).
-        buckets = BeadBuckets(beads, bseq, box[0] - BOX_SLACK_MM, box[1] + BOX_SLACK_MM)
+        buckets = BeadBuckets(beads, bseq, box[0] - BOX_SLACK_MM, box[1] + BOX_SLACK_MM, brad)
         hit, depth, candidates, tested = first_bead_hits(
             C, R, lin, ang, seq, pose, node_c, radii, reach, buckets, self.head_grid, self.near_head,
             bead_r=self.bead_radius_mm, clearance=self.clearance_mm, allowance=self.tip_allowance_mm,
             rho=self.rho_mm, deepest=clearances)
         self.stats.exact_bead_poses += int((candidates > 0).sum())
         self.stats.exact_bead_tests += tested
-        clearance[hit] = depth[hit] - self.bead_radius_mm if clearances else -np.inf
+        clearance[hit] = depth[hit] if clearances else -np.inf
         return hit, clearance
 
-    def _bead_arrays(self, store: BeadStore, pending: np.ndarray, pending_seq: np.ndarray):
-        """Every exact bead a pose may see (the store's kept beads, then the pending ones) and the
-        sequence number from which each is seen (the store's: always)."""
+    def _bead_arrays(self, store: BeadStore, pending: np.ndarray, pending_seq: np.ndarray,
+                     pending_r: np.ndarray | None = None):
+        """Every exact bead a pose may see (the store's kept beads, then the pending ones), the
+        sequence number from which each is seen (the store's: always) and the radius each is held
+        as (``BeadStore.add``; pending_r None: the bead radius)."""
         key = (id(store), store.count, store.retired)
         if self._store_beads is None or self._store_beads[0] != key:
-            levels = [pts for _, pts in store.trees()] if store.count else []
-            kept = np.concatenate(levels) if levels else np.zeros((0, 3))
-            self._store_beads = (key, kept)
-        kept = self._store_beads[1]
+            kept, radii = store.exact() if store.count else (np.zeros((0, 3)), None)
+            self._store_beads = (key, kept, radii)
+        _, kept, radii = self._store_beads
+        r = self.bead_radius_mm
         if len(pending) == 0:
-            return kept, np.full(len(kept), ALWAYS_SEEN, dtype=np.int64)
+            return kept, np.full(len(kept), ALWAYS_SEEN, dtype=np.int64), (r if radii is None else radii)
+        if radii is None and pending_r is None:
+            brad = r
+        else:
+            brad = np.concatenate([np.full(len(kept), r) if radii is None else radii,
+                                   np.full(len(pending), r) if pending_r is None else
+                                   np.minimum(np.asarray(pending_r, dtype=np.float64), r)])
         return (np.concatenate([kept, pending]),
-                np.concatenate([np.full(len(kept), ALWAYS_SEEN, dtype=np.int64), np.asarray(pending_seq, np.int64)]))
+                np.concatenate([np.full(len(kept), ALWAYS_SEEN, dtype=np.int64), np.asarray(pending_seq, np.int64)]),
+                brad)
 
 
 def _balls_box(host, C, R, lin, ang, pose, node, pad: float) -> np.ndarray:

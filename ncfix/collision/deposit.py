@@ -13,7 +13,10 @@ the tip along the tool axis. A move within AXIAL_DEG of the tool axis (a plunge 
 extrudes), or one whose nozzle ploughs through its own extrudate (``ncfix.collision.plough``),
 lays its material at its lower end only: what leaves the nozzle while it runs along its own axis
 ends under it, not in a column along the move. The checker holds each bead as a sphere
-(``BeadShape.radius_mm``) that contains the stated bead.
+(``BeadShape.radius_mm``) that contains the stated bead; a move whose tip loops (TCP off: its
+path LOOP_RATIO times the programmed one or longer) spreads its material along that path as a
+thinner strand (``strand_along``, ``BeadShape.strand``), whose beads the exact test holds at their
+own, smaller radius (every bound and field keeps the stated one).
 
 ``BeadStore`` keeps them twice:
 
@@ -81,6 +84,34 @@ class BeadShape:
     def radius_mm(self) -> float:
         return 0.5 * max(self.width_mm, self.height_mm)
 
+    def strand(self, ratio: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(radius (n,), drop (n,)): the sphere that holds a strand of ``ratio`` (n,) times the
+        stated section, and its centre's drop below P (deposit.md, "Looping tips").
+
+        The strand keeps the stated bead's thickness (the smaller of width and height) and
+        narrows: its larger dimension is what carries the section at that thickness; once the
+        section is below the thickness's round, it is a round strand of that section. It is
+        never larger than the stated bead (ratio >= 1: the stated bead, exactly). With
+        --standoff 0 its top stays at the tip (the drop is half its height), else it is centred
+        on P as the stated bead is."""
+        ratio = np.asarray(ratio, dtype=np.float64)
+        radius = np.full(ratio.shape, self.radius_mm)
+        drop = np.full(ratio.shape, self.drop_mm)
+        thin = ratio < 1.0
+        if not thin.any():
+            return radius, drop
+        w, h = self.width_mm, self.height_mm
+        m, big = min(w, h), max(w, h)
+        core = 0.25 * np.pi * m * m  # the round of the thickness
+        area = ratio[thin] * (m * (big - m) + core)
+        long = np.where(area >= core, m + (area - core) / max(m, 1e-300), np.sqrt(area / (0.25 * np.pi)))
+        long = np.minimum(long, big)
+        tall = np.where(area < core, long, h if w >= h else long)  # the strand's height along N
+        radius[thin] = 0.5 * long
+        if self.drop_mm:
+            drop[thin] = np.minimum(self.drop_mm, self.drop_mm * tall / h)
+        return radius, drop
+
     @classmethod
     def stated(cls, bead_radius_mm: float, width_mm: float | None, height_mm: float | None,
                standoff_mm: float) -> "BeadShape":
@@ -101,6 +132,60 @@ def axial_moves(start_mm: np.ndarray, end_mm: np.ndarray, n_start: np.ndarray, n
         c0 = np.abs(np.einsum("ij,ij->i", d, n_start)) / length
         c1 = np.abs(np.einsum("ij,ij->i", d, n_end)) / length
     return (length > 0) & (c0 >= cos_min) & (c1 >= cos_min)
+
+
+# Looping tips (deposit.md "Looping tips"): a depositing move's tip path is probed at LOOP_PROBE
+# even steps of the move; a path LOOP_RATIO times its programmed length or longer is a loop, then
+# measured at LOOP_STEPS_PER_MM steps per mm of the probe's length (LOOP_PROBE to
+# LOOP_SAMPLES_MAX steps). A path less than 1% longer keeps the stated bead (within 1% of its
+# section; the stated bead is the larger, so this errs toward "collides").
+LOOP_PROBE = 8
+LOOP_RATIO = 1.01
+LOOP_STEPS_PER_MM = 20.0
+LOOP_SAMPLES_MAX = 4096
+# A looping move's beads lie at most min(bead spacing, the strand's radius) apart along its path,
+# and at least this fraction of the bead spacing (a very thin strand is held as wider spheres,
+# not as very many).
+LOOP_SPACING_MIN = 0.25
+
+
+def loop_samples(probe_mm: float) -> int:
+    """Even steps to measure a looping tip path with (its probed length ``probe_mm``)."""
+    return int(min(max(np.ceil(LOOP_STEPS_PER_MM * probe_mm), LOOP_PROBE), LOOP_SAMPLES_MAX))
+
+
+def strand_along(path_mm: np.ndarray, t: np.ndarray, programmed_mm: float, shape: "BeadShape",
+                 spacing_mm: float):
+    """Where a looping move's strand lies: (bead parameters tb (q,) in [0, 1], the strand's
+    radius, its centre's drop), or None when it is no thinner than the stated bead.
+
+    path_mm (k + 1, 3): the tip (P) at the move's parameters t (k + 1,) (0 .. 1), as the
+    controller moves; programmed_mm: the programmed path's length. The move's material is spread
+    over the tip's path: a strand of programmed / path length times the stated section
+    (``BeadShape.strand``). Its beads are at even steps of length along the path, at most
+    min(spacing, radius) apart (at least LOOP_SPACING_MIN · spacing). The path's length is that
+    of the polyline through the points given, never longer than the path: the strand is never
+    made thinner than the rule says."""
+    cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path_mm, axis=0), axis=1))])
+    length = float(cum[-1])
+    if not length > 0.0 or programmed_mm >= length:
+        return None
+    (r,), (drop,) = shape.strand(np.array([programmed_mm / length]))
+    if r >= shape.radius_mm:
+        return None
+    step = min(spacing_mm, max(r, LOOP_SPACING_MIN * spacing_mm))
+    count = int(np.ceil(length / step - 1e-9)) + 1
+    tb = np.interp(np.linspace(0.0, length, count), cum, t)
+    tb[0], tb[-1] = 0.0, 1.0
+    return tb, float(r), float(drop)
+
+
+def held_radius(strand_mm: float, beads_mm: np.ndarray, radius_mm: float) -> float:
+    """The radius a looping move's beads (q, 3) (a chain along its strand of radius
+    ``strand_mm``) are held as: spheres that cover the strand between consecutive beads,
+    sqrt(r² + (gap/2)²) with the widest gap between them, never above the stated ``radius_mm``."""
+    gap = float(np.linalg.norm(np.diff(beads_mm, axis=0), axis=1).max()) if len(beads_mm) > 1 else 0.0
+    return min(float(radius_mm), float(np.sqrt(strand_mm * strand_mm + 0.25 * gap * gap)))
 
 
 class DepositRule(Enum):
@@ -174,6 +259,7 @@ class BeadStore:
         #  the points in the tree's order or None (``near``)], oldest first
         self._levels: list[list] = []
         self._open: list[np.ndarray] = []  # beads not in a level yet (newest)
+        self._open_r: list[np.ndarray | None] = []  # their radii (None: all ``radius_mm``)
         self._open_n = 0
         self.count = 0  # every bead ever added
         self.retired = 0  # the oldest ``retired`` beads live only in ``old``
@@ -182,7 +268,9 @@ class BeadStore:
         self._unstamped: list[np.ndarray] = []
 
     # -- building ----------------------------------------------------------------------------
-    def add(self, points_mm: np.ndarray) -> None:
+    def add(self, points_mm: np.ndarray, radii_mm: np.ndarray | None = None) -> None:
+        """Beads (m, 3), each held as a sphere of its radius (m,) for the exact test (None: all
+        ``radius_mm``; no radius above it: the field and every bound hold ``radius_mm``)."""
         pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
         if len(pts) == 0:
             return
@@ -190,11 +278,13 @@ class BeadStore:
             self._field.add(pts)
         else:
             self._unstamped.append(pts)
-        self._add_exact(pts)
+        self._add_exact(pts, radii_mm)
 
-    def _add_exact(self, pts: np.ndarray) -> None:
+    def _add_exact(self, pts: np.ndarray, radii_mm: np.ndarray | None = None) -> None:
         """Only the exact centres (the caller stamped the field already)."""
         self._open.append(pts)
+        self._open_r.append(None if radii_mm is None else np.minimum(
+            np.asarray(radii_mm, dtype=np.float64).reshape(-1), self.radius_mm))
         self._open_n += len(pts)
         self.count += len(pts)
         if self._open_n >= self.level_max:
@@ -221,11 +311,27 @@ class BeadStore:
         if not self._open:
             return
         pts = np.concatenate(self._open)
-        self._open, self._open_n = [], 0
+        radii = self._radii(self._open, self._open_r)
+        self._open, self._open_r, self._open_n = [], [], 0
         while self._levels and len(self._levels[-1][0]) <= len(pts) and \
                 len(self._levels[-1][0]) + len(pts) <= self.level_max:
-            pts = np.concatenate([self._levels.pop()[0], pts])
-        self._levels.append([pts, None, {}, None])
+            level = self._levels.pop()
+            radii = self._radii([level[0], pts], [level[4], radii])
+            pts = np.concatenate([level[0], pts])
+        self._levels.append([pts, None, {}, None, radii])
+
+    def _radii(self, parts: list[np.ndarray], radii: list[np.ndarray | None]) -> np.ndarray | None:
+        """The radii of the beads of ``parts`` joined (None when every one is ``radius_mm``)."""
+        if all(r is None for r in radii):
+            return None
+        return np.concatenate([np.full(len(p), self.radius_mm) if r is None else r for p, r in zip(parts, radii)])
+
+    def exact(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """Every exact bead (m, 3), oldest first, and its radius (m,) (None: all ``radius_mm``)."""
+        self._close()
+        pts = [level[0] for level in self._levels]
+        radii = self._radii(pts, [level[4] for level in self._levels])
+        return (np.concatenate(pts) if pts else np.zeros((0, 3))), radii
 
     def _retire(self) -> None:
         """Move the oldest levels into the old field until at most ``exact_max`` beads stay exact,
@@ -282,7 +388,7 @@ class BeadStore:
         out = []
         for level in self._levels:
             if cell_mm not in level[2]:
-                level[2][cell_mm] = BeadCells(level[0], cell_mm)
+                level[2][cell_mm] = BeadCells(level[0], cell_mm, level[4])
             out.append(level[2][cell_mm])
         return out
 
@@ -290,8 +396,8 @@ class BeadStore:
     def nbytes(self) -> int:
         fields = sum(f.nbytes for f in (self._field, self.old) if f is not None)
         exact = sum(p.nbytes * (2 if tree is not None else 1) + sum(c.nbytes for c in cells.values())
-                    + (ordered.nbytes if ordered is not None else 0)
-                    for p, tree, cells, ordered in self._levels) + self._open_n * 24
+                    + (ordered.nbytes if ordered is not None else 0) + (radii.nbytes if radii is not None else 0)
+                    for p, tree, cells, ordered, radii in self._levels) + self._open_n * 24
         return int(exact + fields)
 
     # -- queries -----------------------------------------------------------------------------
@@ -308,12 +414,14 @@ class BeadStore:
 class BeadCells:
     """Beads grouped in cubes of ``cell_mm``: each cell's beads (consecutive in ``beads``, in the
     order given: laying order), its centre (their mean) and radius (the farthest of them from it),
-    and a k-d tree of the centres (built on the first ``near``)."""
+    and a k-d tree of the centres (built on the first ``near``). ``radii``: each bead's own radius
+    (``BeadStore.add``), in ``bead_radii`` in the beads' order (None: none given)."""
 
-    def __init__(self, points_mm: np.ndarray, cell_mm: float):
+    def __init__(self, points_mm: np.ndarray, cell_mm: float, radii_mm: np.ndarray | None = None):
         points = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
         _, order, self.counts = group_cells(np.floor(points / cell_mm).astype(np.int64))
         self.beads = points[order]
+        self.bead_radii = None if radii_mm is None else np.asarray(radii_mm, dtype=np.float64)[order]
         self.starts = np.concatenate([[0], np.cumsum(self.counts)[:-1]]).astype(np.int64)
         if len(points):
             self.centre = np.add.reduceat(self.beads, self.starts, axis=0) / self.counts[:, None]
@@ -334,28 +442,35 @@ class BeadCells:
         far = np.linalg.norm(self.centre[idx] - centre_mm, axis=1) - self.radius[idx]
         return idx[far <= radius_mm]
 
-    def gather(self, centre_mm: np.ndarray, radius_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``take(near(centre_mm, radius_mm))``. A ball that holds every cell centre (the farthest
-        corner of their box closer than the radius) gets every cell without a query: the same
-        cells, in the same order, as ``near`` would give."""
+    def gather(self, centre_mm: np.ndarray, radius_mm: float, radii: bool = False) -> tuple:
+        """``take(near(centre_mm, radius_mm), radii)``. A ball that holds every cell centre (the
+        farthest corner of their box closer than the radius) gets every cell without a query: the
+        same cells, in the same order, as ``near`` would give."""
         corner = np.maximum(np.abs(self._lo - centre_mm), np.abs(self._hi - centre_mm))
         if float(np.sqrt(corner @ corner)) < radius_mm:
-            return self.take()
-        return self.take(self.near(centre_mm, radius_mm))
+            return self.take(None, radii)
+        return self.take(self.near(centre_mm, radius_mm), radii)
 
-    def take(self, cells: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def take(self, cells: np.ndarray | None = None, radii: bool = False) -> tuple:
         """(beads of these cells (m, 3), cell by cell, each in the order given; beads per cell (k,);
-        centres (k, 3); radii (k,)); every cell when None (the arrays kept here: not to be written)."""
+        centres (k, 3); radii (k,)), with ``radii`` also the beads' own radii (m,) or None; every
+        cell when None (the arrays kept here: not to be written)."""
         if cells is None:
-            return self.beads, self.counts, self.centre, self.radius
+            out = (self.beads, self.counts, self.centre, self.radius)
+            return out + (self.bead_radii,) if radii else out
         counts = self.counts[cells]
         offs = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
-        return self.beads[np.repeat(self.starts[cells], counts) + offs], counts, self.centre[cells], self.radius[cells]
+        pick = np.repeat(self.starts[cells], counts) + offs
+        out = (self.beads[pick], counts, self.centre[cells], self.radius[cells])
+        if radii:
+            out += (None if self.bead_radii is None else self.bead_radii[pick],)
+        return out
 
     @property
     def nbytes(self) -> int:
         return int(self.beads.nbytes + self.counts.nbytes + self.starts.nbytes + self.centre.nbytes
-                   + self.radius.nbytes + (self.centre.nbytes if self._tree is not None else 0))
+                   + self.radius.nbytes + (self.centre.nbytes if self._tree is not None else 0)
+                   + (self.bead_radii.nbytes if self.bead_radii is not None else 0))
 
 
 class BeadField:

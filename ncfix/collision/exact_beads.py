@@ -50,7 +50,7 @@ def _head_lb(x, y, z, dist, origin, pitch, box, margin):  # pragma: no cover - c
 
 
 def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
-            beads, bseq, cell_start, cell_beads, glo, gcell, gdims,
+            beads, bseq, brad, cell_start, cell_beads, glo, gcell, gdims,
             hdist, horigin, hpitch, hbox, hmargin,
             tris, nlo, ncell, ndims, ncap, nstart, nlisted, slo, spitch, inside, sdepth,
             bead_r, clearance, allowance, rho, deepest):  # pragma: no cover - compiled
@@ -62,6 +62,7 @@ def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
     mark = np.full(beads.shape[0], -1, np.int64)
     buf = np.empty((beads.shape[0], 3))
     buf_need = np.empty(beads.shape[0])
+    buf_r = np.empty(beads.shape[0])
     buf_lb = np.empty(beads.shape[0])
     buf_sd = np.empty(beads.shape[0])
     half = 0.5 * gcell + CELL_SLACK_MM  # a cell's half edge, with the slack of its beads' binning
@@ -116,7 +117,7 @@ def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
                             lz = R[p, 0, 2] * ex + R[p, 1, 2] * ey + R[p, 2, 2] * ez
                             # A head point at distance d from the tip moves at most lin + ang·d
                             # between samples; a bead laid at this very sample gets no margin.
-                            need = bead_r + clearance
+                            need = brad[b] + clearance  # its own radius (at most bead_r)
                             if bseq[b] != seq[p]:
                                 swept = lin[p] + ang[p] * rho
                                 near = lin[p] + ang[p] * (np.sqrt(lx * lx + ly * ly + lz * lz) + need + swept)
@@ -128,6 +129,7 @@ def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
                                 continue
                             buf[k, 0], buf[k, 1], buf[k, 2] = lx, ly, lz
                             buf_need[k] = need
+                            buf_r[k] = brad[b]
                             buf_lb[k] = lb
                             k += 1
         candidates[p] = k
@@ -141,24 +143,26 @@ def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
                       ncap, nstart, nlisted, slo, spitch, inside):
                 hit[p] = True
                 if deepest:  # the pose's clearance: the deepest of its candidates
-                    # A lower bound on each one's signed distance: lb outside (lb > 0), minus the
-                    # depth bound inside; smallest first, until the bound passes the best found.
+                    # A lower bound on each one's clearance (its signed distance minus its
+                    # radius): lb outside (lb > 0), minus the depth bound inside; smallest first,
+                    # until the bound passes the best found.
                     for u in range(k):
-                        buf_sd[u] = buf_lb[u] if buf_lb[u] > 0.0 else \
-                            -depth_bound(buf[u, 0], buf[u, 1], buf[u, 2], slo, spitch, sdepth)
+                        buf_sd[u] = (buf_lb[u] if buf_lb[u] > 0.0 else
+                                     -depth_bound(buf[u, 0], buf[u, 1], buf[u, 2], slo, spitch, sdepth)) - buf_r[u]
                     by_sd = np.argsort(buf_sd[:k], kind="mergesort")
                     best = np.inf
                     for u in range(k):
                         v = by_sd[u]
                         if buf_sd[v] >= best:
                             break
-                        if best < 0.0:  # only a point deeper than the best can change it
-                            sd = _signed_distance_below(buf[v, 0], buf[v, 1], buf[v, 2], buf_lb[v] > 0.0, best, tris,
-                                                        nlo, ncell, ndims, ncap, nstart, nlisted, slo, spitch, inside)
+                        if best + buf_r[v] < 0.0:  # only a point deeper than the best can change it
+                            sd = _signed_distance_below(buf[v, 0], buf[v, 1], buf[v, 2], buf_lb[v] > 0.0,
+                                                        best + buf_r[v], tris, nlo, ncell, ndims, ncap, nstart,
+                                                        nlisted, slo, spitch, inside)
                         else:
                             sd = _signed_distance(buf[v, 0], buf[v, 1], buf[v, 2], buf_lb[v] > 0.0, tris, nlo, ncell,
                                                   ndims, ncap, nstart, nlisted, slo, spitch, inside)
-                        best = min(best, sd)
+                        best = min(best, sd - buf_r[v])
                     depth[p] = best
                 break
     return hit, depth, candidates, tested
@@ -168,14 +172,20 @@ _head_lb = njit(cache=True, nogil=True)(_head_lb)
 _kernel = njit(cache=True, nogil=True)(_kernel)
 
 
-def candidates_free(C, R, cells, head_grid, near: NearSurface, *, need: float, allowance: float):
+def candidates_free(C, R, cells, head_grid, near: NearSurface, *, need: float, allowance: float,
+                    clearance: float = 0.0):
     """Per pose (n) of one tip (``Checker.deposit_free``): free of the beads in ``cells`` ((beads,
-    members, counts, starts, cell centres, cell radii), ``Checker._tip_cells``); and the beads
-    tested exactly. A cell the head grid's bound clears (or wholly below the allowance plane
-    by more than ``need``) clears its beads; a bead it cannot clear is tested exactly (a ball of
-    radius ``need`` against the clipped head, the centre's side checked where the bound allows it
-    inside), the most suspect first, and a pose stops at its first touching bead."""
-    B, members, counts, starts, cc, cr = cells
+    members, counts, starts, cell centres, cell radii[, each bead's radius]),
+    ``Checker._tip_cells``); and the beads tested exactly. A cell the head grid's bound clears (or
+    wholly below the allowance plane by more than ``need``, the largest bead's radius plus the
+    clearance) clears its beads; a bead it cannot clear is tested exactly (a ball of its own radius
+    plus ``clearance``, else ``need``, against the clipped head, the centre's side checked where
+    the bound allows it inside), the most suspect first, and a pose stops at its first touching
+    bead."""
+    B, members, counts, starts, cc, cr = cells[:6]
+    own = np.ascontiguousarray(cells[6], np.float64) + float(clearance) if len(cells) > 6 else \
+        np.full(len(B), float(need))
+    own = np.minimum(own, float(need))
     f64 = np.float64
     C, R = np.ascontiguousarray(C, f64).reshape(-1, 3), np.ascontiguousarray(R, f64).reshape(-1, 3, 3)
     hbox, horigin = np.ascontiguousarray(head_grid._box(), f64), np.asarray(head_grid.origin_mm, f64)
@@ -184,7 +194,8 @@ def candidates_free(C, R, cells, head_grid, near: NearSurface, *, need: float, a
         return _candidates_kernel(
             C[lo:hi], R[lo:hi], np.ascontiguousarray(cc, f64), np.ascontiguousarray(cr, f64),
             np.ascontiguousarray(counts, np.int64), np.ascontiguousarray(starts, np.int64),
-            np.ascontiguousarray(members, np.int64), np.ascontiguousarray(B, f64), float(need), float(allowance),
+            np.ascontiguousarray(members, np.int64), np.ascontiguousarray(B, f64), own, float(need),
+            float(allowance),
             head_grid.dist_mm, horigin, float(head_grid.pitch_mm), hbox, float(head_grid.margin_mm),
             near.triangles, near.lo, near.cell_mm, near.dims, near.cap_mm, near.start, near.listed,
             near.sign_lo, near.sign_pitch, near.inside)
@@ -195,7 +206,7 @@ def candidates_free(C, R, cells, head_grid, near: NearSurface, *, need: float, a
     return ~np.concatenate([p[0] for p in parts]), int(sum(p[1] for p in parts))
 
 
-def _candidates_kernel(C, R, cc, cr, counts, starts, members, beads, need, allowance,
+def _candidates_kernel(C, R, cc, cr, counts, starts, members, beads, own, need, allowance,
                        hdist, horigin, hpitch, hbox, hmargin,
                        tris, nlo, ncell, ndims, ncap, nstart, nlisted, slo, spitch, inside):  # pragma: no cover - compiled
     """(hit (n,), beads tested): ``candidates_free``'s loop (head-frame point of a world point q at
@@ -205,6 +216,7 @@ def _candidates_kernel(C, R, cc, cr, counts, starts, members, beads, need, allow
     tested = 0
     buf = np.empty((beads.shape[0], 3))
     buf_lb = np.empty(beads.shape[0])
+    buf_need = np.empty(beads.shape[0])
     for p in range(n):
         k = 0
         for c in range(cc.shape[0]):
@@ -218,17 +230,19 @@ def _candidates_kernel(C, R, cc, cr, counts, starts, members, beads, need, allow
                 continue
             for j in range(starts[c], starts[c] + counts[c]):
                 b = members[j]
+                nb = own[b]  # this bead's radius plus the clearance (at most need)
                 ex, ey, ez = beads[b, 0] - C[p, 0], beads[b, 1] - C[p, 1], beads[b, 2] - C[p, 2]
                 z = R[p, 0, 2] * ex + R[p, 1, 2] * ey + R[p, 2, 2] * ez
-                if not z + need > allowance:
+                if not z + nb > allowance:
                     continue
                 x = R[p, 0, 0] * ex + R[p, 1, 0] * ey + R[p, 2, 0] * ez
                 y = R[p, 0, 1] * ex + R[p, 1, 1] * ey + R[p, 2, 1] * ez
                 lb = _head_lb(x, y, z, hdist, horigin, hpitch, hbox, hmargin)
-                if lb > need:
+                if lb > nb:
                     continue
                 buf[k, 0], buf[k, 1], buf[k, 2] = x, y, z
                 buf_lb[k] = lb
+                buf_need[k] = nb
                 k += 1
         if k == 0:
             continue
@@ -236,8 +250,8 @@ def _candidates_kernel(C, R, cc, cr, counts, starts, members, beads, need, allow
         for t in range(k):
             i = order[t]
             tested += 1
-            if _touch(buf[i, 0], buf[i, 1], buf[i, 2], need, buf_lb[i] <= 0.0, tris, nlo, ncell, ndims, ncap,
-                      nstart, nlisted, slo, spitch, inside):
+            if _touch(buf[i, 0], buf[i, 1], buf[i, 2], buf_need[i], buf_lb[i] <= 0.0, tris, nlo, ncell, ndims,
+                      ncap, nstart, nlisted, slo, spitch, inside):
                 hit[p] = True
                 break
     return hit, tested
@@ -245,9 +259,11 @@ def _candidates_kernel(C, R, cc, cr, counts, starts, members, beads, need, allow
 
 class BeadBuckets:
     """Beads (the store's exact ones and the window's pending ones, with the sequence number from
-    which each is seen: -1 = always) in a bucket grid over the region a batch of queries covers."""
+    which each is seen: -1 = always, and the radius of the sphere each is held as) in a bucket
+    grid over the region a batch of queries covers."""
 
-    def __init__(self, beads: np.ndarray, seq: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+    def __init__(self, beads: np.ndarray, seq: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                 radii: np.ndarray | float = 0.0):
         beads = np.ascontiguousarray(beads, dtype=np.float64).reshape(-1, 3)
         lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
         # The beads inside [lo, hi] (into the beads given, ascending) are those inside the box cut
@@ -263,6 +279,9 @@ class BeadBuckets:
         self.dims = (np.floor(extent / cell) + 1).astype(np.int64)
         self.beads = np.ascontiguousarray(beads[self.index])
         self.seq = np.ascontiguousarray(np.asarray(seq, dtype=np.int64)[self.index])
+        radii = np.asarray(radii, dtype=np.float64)
+        self.radii = np.ascontiguousarray(np.broadcast_to(radii, (len(beads),))[self.index] if radii.ndim else
+                                          np.full(len(self.index), float(radii)))
         # A compiled counting sort: what np.argsort(flat, kind="stable") and np.bincount gave.
         self.cell_beads, self.cell_start = _sort_by_cell(self.beads, lo, float(cell), self.dims)
 
@@ -315,8 +334,9 @@ _sort_by_cell = njit(cache=True, nogil=True)(_sort_by_cell)
 def first_bead_hits(C, R, lin, ang, seq, node_pose, node_c, node_r, node_reach, buckets: BeadBuckets,
                     head_grid, near: NearSurface, *, bead_r: float, clearance: float, allowance: float,
                     rho: float, deepest: bool = True):
-    """Per pose (n): hit (bool), with ``deepest`` the smallest signed distance from a bead centre it
-    sees to the clipped head (+inf where free or not ``deepest``; minus the radius: its clearance),
+    """Per pose (n): hit (bool), with ``deepest`` its clearance: the smallest signed distance from a
+    bead centre it sees to the clipped head minus that bead's radius (``buckets.radii``, at most
+    ``bead_r``, which bounds the search) (+inf where free or not ``deepest``),
     the candidate beads it had after the filters, and the beads tested exactly (module doc).
     node_pose (m,) ascending: the pose of each failing node; node_c (m, 3) head-frame centres,
     node_r / node_reach (m,) radius and reach."""
@@ -333,7 +353,7 @@ def first_bead_hits(C, R, lin, ang, seq, node_pose, node_c, node_r, node_reach, 
     def run(lo, hi):  # poses lo..hi-1: node_start[lo..hi] still index the whole node arrays
         return _kernel(
             C[lo:hi], R[lo:hi], lin[lo:hi], ang[lo:hi], seq[lo:hi], node_start[lo:hi + 1], node_c, node_r,
-            node_reach, buckets.beads, buckets.seq, buckets.cell_start, buckets.cell_beads, buckets.lo,
+            node_reach, buckets.beads, buckets.seq, buckets.radii, buckets.cell_start, buckets.cell_beads, buckets.lo,
             float(buckets.cell), buckets.dims, head_grid.dist_mm, horigin, float(head_grid.pitch_mm), hbox,
             float(head_grid.margin_mm), near.triangles, near.lo, near.cell_mm, near.dims, near.cap_mm, near.start,
             near.listed, near.sign_lo, near.sign_pitch, near.inside, sdepth,

@@ -19,8 +19,10 @@ from its end than its chord).
 Beads of depositing moves are laid from the move's start to its end point (along the arc for
 arcs), at most half a pitch apart, each ``Checker.bead_drop_mm`` below P along the tool axis
 there (``deposit.BeadShape``); a plunge or lift (``deposit.axial_moves``) lays one bead, at its
-lower end. A bead exists from the first sample at or after its place on the move (sequence
-numbers).
+lower end; a move whose tip path is LOOP_RATIO times its programmed length or longer (TCP off)
+lays a thinner strand along that path, each of its beads with its own radius
+(``_looping_beads``). A bead exists from the first sample at or after its place on the move
+(sequence numbers).
 """
 
 from __future__ import annotations
@@ -31,7 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ncfix.collision.checker import Checker, rotation_angle
-from ncfix.collision.deposit import BeadStore, axial_moves, bead_samples
+from ncfix.collision.deposit import (LOOP_PROBE, LOOP_RATIO, BeadStore, axial_moves, bead_samples, held_radius,
+                                     loop_samples, strand_along)
 from ncfix.collision.plough import ploughing_moves
 from ncfix.geometry.frames import half_turn_direction
 from ncfix.kinematics.tool_vector import ToolVector
@@ -183,10 +186,17 @@ class PathChecker:
             chain_ang[1:] = rotation_angle(R[:-1], R[1:])
         cum_lin, cum_ang = np.cumsum(chain_lin), np.cumsum(chain_ang)
 
-        pend, pend_seq = self._beads(moves, ws, Ps, Pe, Ns, Ne, m, first, seq0)
+        pend, pend_seq, pend_r = self._beads(moves, ws, Ps, Pe, Ns, Ne, m, first, seq0)
         if prior is not None and len(prior) and ck.bead_radius_mm > 0:
             # Laid before sample seq0: seen by every sample, never fresh; first in laying order.
-            pend = np.concatenate([np.asarray(prior, dtype=np.float64).reshape(-1, 3), pend])
+            prior_r = None
+            if isinstance(prior, tuple):  # (beads, radii) of ``bead_points(..., radii=True)``
+                prior, prior_r = prior
+            prior = np.asarray(prior, dtype=np.float64).reshape(-1, 3)
+            if prior_r is not None or pend_r is not None:
+                pend_r = np.concatenate([np.full(len(prior), ck.bead_radius_mm) if prior_r is None else prior_r,
+                                         np.full(len(pend), ck.bead_radius_mm) if pend_r is None else pend_r])
+            pend = np.concatenate([prior, pend])
             pend_seq = np.concatenate([np.full(len(prior), seq0 - 1, dtype=np.int64), pend_seq])
         refine = Refiner(self, moves, ws, we, arcs, row_of, (k - 1) / m[row_of], t)
         # The parts take the first half of the bar, the beads the second (a guess that only moves it).
@@ -203,12 +213,12 @@ class PathChecker:
                 store.field(ck.pitch_mm).add(pend)
             dep_hit, dep_clear = ck.sweep_deposit(C, R, step, turn, cum_lin, cum_ang, seq, store, pend, pend_seq,
                                                   stamped=stamped, move_of=row_of, refine=refine,
-                                                  clearances=clearances,
+                                                  clearances=clearances, pending_r=pend_r,
                                                   progress=None if progress is None else lambda f: progress(0.5 + 0.5 * f))
             if stamped:
-                store._add_exact(pend)
+                store._add_exact(pend, pend_r)
         elif commit:
-            store.add(pend)
+            store.add(pend, pend_r)
         ck.stats.poses += total
 
         n = len(moves)
@@ -261,21 +271,25 @@ class PathChecker:
         angle = np.pi * t[flip]
         words[flip, 3:6] = np.cos(angle)[:, None] * a + np.sin(angle)[:, None] * half_turn_direction(a)
 
-    def bead_points(self, moves: Moves) -> np.ndarray:
-        """The beads the moves lay (m, 3), as ``check`` lays them (for committing without a check)."""
+    def bead_points(self, moves: Moves, radii: bool = False):
+        """The beads the moves lay (m, 3), as ``check`` lays them (for committing without a check);
+        with ``radii`` (beads, radius of each (m,) or None: all the bead radius), which
+        ``BeadStore.add`` and ``check``'s ``prior`` take."""
         ws = np.where(moves.known_start[:, None], moves.w_start, moves.w_end)
         Ps, Ns, _ = self.forward(ws, moves.tcp)
         Pe, Ne, _ = self.forward(moves.w_end, moves.tcp)
         ones = np.ones(len(moves), dtype=np.int64)
-        return self._beads(moves, ws, Ps, Pe, Ns, Ne, ones, np.zeros(len(moves), dtype=np.int64), 0)[0]
+        pend, _, pend_r = self._beads(moves, ws, Ps, Pe, Ns, Ne, ones, np.zeros(len(moves), dtype=np.int64), 0)
+        return (pend, pend_r) if radii else pend
 
     def _beads(self, moves: Moves, ws, Ps, Pe, Ns, Ne, m, first, seq0):
         """Beads of the depositing moves, from start to end point, <= pitch/2 apart (a plunge or
         lift: one, at its lower end), each ``bead_drop_mm`` below P along the tool axis, with the
-        sequence number of the first sample that sees each."""
+        sequence number of the first sample that sees each, and their radii (None: all the bead
+        radius; a looping move's beads are thinner, ``_looping_beads``)."""
         depo = moves.deposit
         if not depo.any() or self.checker.bead_radius_mm <= 0:
-            return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+            return np.zeros((0, 3)), np.zeros(0, dtype=np.int64), None
         di = np.nonzero(depo)[0]
         arcs = moves.arc_rows()
         length = np.linalg.norm(Pe[di] - Ps[di], axis=1)
@@ -304,8 +318,73 @@ class PathChecker:
             if drop:
                 pend -= drop * nb
         kb = np.maximum(np.ceil(tb * m[brow] - 1e-9), 1).astype(np.int64)
-        return pend, seq0 + first[brow] + kb - 1
+        pend_seq = seq0 + first[brow] + kb - 1
+        radii = None
+        if not isinstance(self.kin, ToolVector):  # XYZ words: P runs straight, never loops
+            loops = self._looping_beads(moves, ws, Ps, Pe, di[~axial & ~arcs[di]], m, first, seq0)
+            if loops:
+                pend, pend_seq, radii = self._with_loops(pend, pend_seq, di, counts, loops)
+        return pend, pend_seq, radii
 
+    def _tip_path(self, moves: Moves, ws, rows: np.ndarray, samples: int):
+        """P at ``samples`` + 1 even steps of t along each move ``rows`` (k,), as the controller
+        moves (linear in the words): (P (k, samples + 1, 3), N (k, samples + 1, 3), t (samples + 1,))."""
+        t = np.arange(samples + 1) / samples
+        row = np.repeat(rows, samples + 1)
+        words = self._along(moves, ws, moves.w_end, row, np.tile(t, len(rows)), np.zeros(len(moves), dtype=bool))
+        P, N, _ = self.forward(self.normalise(words), moves.tcp[row])
+        return P.reshape(len(rows), samples + 1, 3), N.reshape(len(rows), samples + 1, 3), t
+
+    def _looping_beads(self, moves: Moves, ws, Ps, Pe, rows, m, first, seq0) -> dict:
+        """Beads of the depositing moves ``rows`` whose tip runs a path LOOP_RATIO or more longer
+        than the programmed one (TCP off, the axes interpolated linearly: a C flip near the pole):
+        {row: (beads (q, 3), sequence numbers (q,), radii (q,))}. The move's material is spread
+        along the longer path: a strand of (programmed length / tip path length) times the stated
+        section (``BeadShape.strand``), laid along the tip's path at most min(pitch/2, its radius)
+        apart, each held as a sphere covering the strand out to the next bead (deposit.md,
+        "Looping tips"). The tip path's length is that of a polyline through points on it (never
+        longer than the path: the strand is never made thinner than the rule says)."""
+        ck = self.checker
+        shape = getattr(ck, "bead_shape", None)
+        if shape is None or len(rows) == 0:
+            return {}
+        chord = np.linalg.norm(Pe[rows] - Ps[rows], axis=1)
+        P, _, _ = self._tip_path(moves, ws, rows, LOOP_PROBE)
+        probe = np.linalg.norm(np.diff(P, axis=1), axis=2).sum(axis=1)
+        loop = (chord > 0) & (probe > LOOP_RATIO * chord)
+        out = {}
+        for row, c, rough in zip(rows[loop], chord[loop], probe[loop]):
+            P, _, t = self._tip_path(moves, ws, np.array([row]), loop_samples(rough))
+            got = strand_along(P[0], t, c, shape, 0.5 * self.pitch_mm)
+            if got is None:
+                continue
+            tb, r, drop = got
+            row_b = np.full(len(tb), row)
+            bw = self._along(moves, ws, moves.w_end, row_b, tb, np.zeros(len(moves), dtype=bool))
+            pb, nb, _ = self.forward(self.normalise(bw), moves.tcp[row_b])
+            beads = pb - drop * nb
+            held = held_radius(r, beads, ck.bead_radius_mm)
+            if held >= ck.bead_radius_mm:  # no thinner than the stated bead: laid as it is
+                continue
+            count = len(tb)
+            kb = np.maximum(np.ceil(tb * m[row] - 1e-9), 1).astype(np.int64)
+            out[int(row)] = (beads, seq0 + first[row] + kb - 1, np.full(count, held))
+        return out
+
+    def _with_loops(self, pend, pend_seq, di, counts, loops: dict):
+        """The beads with each looping move's replaced by ``loops``' (laying order kept), and the
+        radius of every bead."""
+        r = self.checker.bead_radius_mm
+        ends = np.cumsum(counts)
+        parts, seqs, radii = [], [], []
+        for j, row in enumerate(di):
+            a, b = ends[j] - counts[j], ends[j]
+            got = loops.get(int(row))
+            if got is None:
+                parts.append(pend[a:b]), seqs.append(pend_seq[a:b]), radii.append(np.full(b - a, r))
+            else:
+                parts.append(got[0]), seqs.append(got[1]), radii.append(got[2])
+        return np.concatenate(parts), np.concatenate(seqs), np.concatenate(radii)
 
     def _ploughing(self, moves: Moves, ws: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """(len(rows),) bool: the moves whose nozzle ploughs through what they extrude
@@ -320,6 +399,15 @@ class PathChecker:
         Pe, Ne, Re = self.forward(moves.w_end[rows], moves.tcp[rows])
         h = self.standoff_mm
         return ploughing_moves(tris, Ps + h * Ns, Pe + h * Ne, Rs, Re)
+
+
+def join_beads(parts: list, radius_mm: float):
+    """(beads, radii) of ``PathChecker.bead_points(..., radii=True)`` parts, joined in order (radii
+    None when every bead has ``radius_mm``)."""
+    pts = np.concatenate([p for p, _ in parts])
+    if all(r is None for _, r in parts):
+        return pts, None
+    return pts, np.concatenate([np.full(len(p), radius_mm) if r is None else r for p, r in parts])
 
 
 class Refiner:

@@ -40,7 +40,7 @@ import numpy as np
 
 from ncfix.collision.checker import Checker
 from ncfix.collision.deposit import BeadField, BeadStore
-from ncfix.collision.path import MoveHits, Moves, PathChecker
+from ncfix.collision.path import MoveHits, Moves, PathChecker, join_beads
 from ncfix.collision.stage import MotionRows, check_placement, collision_entry
 from ncfix.correct.extrusion import follow
 from ncfix.correct.solve import Episode, Solution
@@ -162,7 +162,7 @@ class Rechecks:
                                   reach_mm(ck, self.margin[later]), beads)
                 todo[later[near]] = True
         for s, e in _runs(todo, MERGE_GAP):
-            prior = stage.path.bead_points(_take(moves, slice(0, s))) if s else None
+            prior = stage.path.bead_points(_take(moves, slice(0, s)), radii=True) if s else None
             run = _take(moves, slice(s, e))
             hits, _ = stage.path.check(run, stage.store, 0, commit=False, prior=prior, clearances=False)
             stage.samples += hits.samples
@@ -281,7 +281,7 @@ class CorrectStage:
         if b <= self.final:
             return
         moves = self._moves(self.final, b)
-        self.store.add(self.path.bead_points(moves))
+        self.store.add(*self.path.bead_points(moves, radii=True))
         self._trace(self.final, b)
         d = self.detected  # final rows are not detected again: their poses can go
         d.valid[self.final:b] = False
@@ -363,9 +363,9 @@ class CorrectStage:
         for s, e in _runs(~ok, MERGE_GAP):
             s, e = a + s, a + e
             if s > covered:
-                prior.append(self.path.bead_points(self._moves(covered, s)))
+                prior.append(self.path.bead_points(self._moves(covered, s), radii=True))
                 covered = s
-            pts = np.concatenate(prior) if prior else None
+            pts = join_beads(prior, self.checker.bead_radius_mm) if prior else None
             hits, _ = self.path.check(self._moves(s, e), self.store, 0, commit=False, prior=pts,
                                       progress=self._detecting(s, e))
             samples += hits.samples
