@@ -303,7 +303,8 @@ class CorrectStage:
         if b <= self.final:
             return
         moves = self._moves(self.final, b)
-        self.store.add(self.path.bead_points(moves))
+        if self.checker.bead_radius_mm > 0 and moves.deposit.any():  # no kinematics for no beads
+            self.store.add(self.path.bead_points(moves))
         self._trace(self.final, b)
         d = self.detected  # final rows are not detected again: their poses can go
         d.valid[self.final:b] = False
@@ -317,7 +318,8 @@ class CorrectStage:
     def _trace(self, a: int, b: int) -> None:
         r = self.rows
         P, N, _ = self.path.forward(r.words[a:b], r.tcp[a:b])
-        _, N0, _ = self.path.forward(r.programmed[a:b], r.tcp[a:b])
+        # Rows as programmed (most of a program) have their programmed orientation: no second pass.
+        N0 = N if _same(r.words[a:b], r.programmed[a:b]).all() else self.path.forward(r.programmed[a:b], r.tcp[a:b])[1]
         previous = N[:-1]
         if a > 0 or self.prev_words is not None:
             w = r.words[a - 1:a] if a > 0 else self.prev_words[None, :]
@@ -385,7 +387,8 @@ class CorrectStage:
         for s, e in _runs(~ok, MERGE_GAP):
             s, e = a + s, a + e
             if s > covered:
-                prior.append(self.path.bead_points(self._moves(covered, s)))
+                if self.checker.bead_radius_mm > 0:
+                    prior.append(self.path.bead_points(self._moves(covered, s)))
                 covered = s
             pts = np.concatenate(prior) if prior else None
             hits, _ = self.path.check(self._moves(s, e), self.store, 0, commit=False, prior=pts,
