@@ -719,8 +719,7 @@ def move_poses(path: PathChecker, moves: Moves, hits: MoveHits, corners: np.ndar
     poses = [(C[a:b], R[a:b]) for a, b in zip(begin.tolist(), ends)]
     lo = hi = None
     if corners is not None:
-        w = C[:, None, :] + np.einsum("nij,kj->nki", R, corners)
-        wlo, whi = w.min(axis=1), w.max(axis=1)
+        wlo, whi = _boxes(C, R, corners)
         lo, hi = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
         has = size > 0
         lo[has] = np.minimum.reduceat(wlo, begin[has], axis=0)
