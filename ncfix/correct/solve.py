@@ -95,7 +95,8 @@ class Episode:
         # re-check uses the solution's own beads).
         self.bead_pts, self.bead_seq = self._programmed_beads()
         self.tests = 0  # candidate poses tested
-        self.checks = stage.rechecks()  # re-checks, each reusing what the last one found
+        # Re-checks, each reusing what the last one found (the first: what detection found).
+        self.checks = stage.rechecks((first, last + 1 if self.after_row is None else last + 2))
         self._programmed_free: np.ndarray | None = None
 
     def _prev_programmed(self) -> np.ndarray:

@@ -131,10 +131,16 @@ class Rechecks:
     changed one keeps its result (it does not see later beads); a later unchanged move keeps it
     unless its head came within reach (``reach_mm``) of a bead of a changed move, as laid before
     or after the change. The rest are checked, in runs, each with the beads of the moves before
-    it (``PathChecker.check`` ``prior``), as detection reuses its results."""
+    it (``PathChecker.check`` ``prior``), as detection reuses its results.
 
-    def __init__(self, stage: "CorrectStage"):
+    ``rows`` (first, end): the table rows of the moves checked; the first re-check then starts
+    from their detection (``Detected``) instead of checking them all: a move the strategy left
+    as detected keeps detection's result by the same rule, so an episode costs the moves it
+    changes, not its length."""
+
+    def __init__(self, stage: "CorrectStage", rows: tuple[int, int] | None = None):
         self.stage = stage
+        self.rows = rows
         self.last: Moves | None = None  # the moves of the last re-check (copies)
         self.bad = self.margin = self.lo = self.hi = None
         self.poses: list = []
@@ -146,6 +152,7 @@ class Rechecks:
         stage, ck = self.stage, self.stage.checker
         n = len(moves)
         todo = np.ones(n, dtype=bool)
+        stale = self._from_detection(moves) if self.last is None else np.zeros(n, dtype=bool)
         if self.last is None or len(self.last) != n or not stage.REUSE_DETECTION:
             self.bad, self.margin = np.zeros(n, dtype=bool), np.zeros(n)
             self.lo, self.hi = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
@@ -153,9 +160,9 @@ class Rechecks:
         else:
             last = self.last
             changed = ~(_same(last.w_start, moves.w_start) & _same(last.w_end, moves.w_end))
-            todo = changed.copy()
+            todo = changed | stale
             if changed.any() and stage.head_corners is not None and moves.deposit[changed].any():
-                later = np.nonzero((np.arange(n) > np.argmax(changed)) & ~changed)[0]
+                later = np.nonzero((np.arange(n) > np.argmax(changed)) & ~todo)[0]
                 beads = np.concatenate([stage.path.bead_points(_take(last, changed)),
                                         stage.path.bead_points(_take(moves, changed))])
                 near = near_beads(ck, self.lo[later], self.hi[later], [self.poses[i] for i in later],
@@ -176,6 +183,29 @@ class Rechecks:
                                                                           moves.known_start, moves.deposit,
                                                                           moves.arc)))
         return self.bad.copy()
+
+    def _from_detection(self, moves: Moves) -> np.ndarray:
+        """Take the detection of the rows as the last re-check (``self.last`` and its results);
+        (n,) bool: the moves whose detection is not current (checked whatever their words).
+        Nothing is taken when the rows are not known, or the store retired beads since."""
+        stage = self.stage
+        n = len(moves)
+        if self.rows is None or not stage.REUSE_DETECTION or stage.store.retired != stage.retired_seen:
+            return np.zeros(n, dtype=bool)
+        a, b = self.rows
+        d = stage.detected
+        if b - a != n or b > len(d.valid):
+            return np.zeros(n, dtype=bool)
+        stale = ~d.valid[a:b] | np.array([p is None for p in d.poses[a:b]], dtype=bool)
+        # A stale move is checked; as "last" it stands with its current words (its beads did not move).
+        start = np.where(stale[:, None], moves.w_start, d.start[a:b])
+        end = np.where(stale[:, None], moves.w_end, d.end[a:b])
+        self.last = Moves(start, end, np.array(moves.tcp), np.array(moves.known_start), np.array(moves.deposit),
+                          None if moves.arc is None else np.array(moves.arc))
+        self.bad = d.part_hit[a:b].any(axis=1) | d.deposit_hit[a:b]
+        self.margin, self.lo, self.hi = d.margin[a:b].copy(), d.lo[a:b].copy(), d.hi[a:b].copy()
+        self.poses = list(d.poses[a:b])
+        return stale
 
 
 class CorrectStage:
@@ -264,9 +294,10 @@ class CorrectStage:
             self._beads_moved_by = {k: v for k, v in self._beads_moved_by.items() if first is not None and k >= first}
         return out
 
-    def rechecks(self) -> Rechecks:
-        """A fresh re-check of one episode's moves (``Episode.checks``)."""
-        return Rechecks(self)
+    def rechecks(self, rows: tuple[int, int] | None = None) -> Rechecks:
+        """A fresh re-check of one episode's moves, rows[0] .. rows[1] - 1 (``Episode.checks``):
+        its first check takes what detection found for them."""
+        return Rechecks(self, rows)
 
     def _moves(self, a: int, b: int) -> Moves:
         """Rows a..b-1 as moves from their current (possibly corrected) predecessors."""
@@ -281,7 +312,8 @@ class CorrectStage:
         if b <= self.final:
             return
         moves = self._moves(self.final, b)
-        self.store.add(*self.path.bead_points(moves, radii=True))
+        if self.checker.bead_radius_mm > 0 and moves.deposit.any():  # no kinematics for no beads
+            self.store.add(*self.path.bead_points(moves, radii=True))
         self._trace(self.final, b)
         d = self.detected  # final rows are not detected again: their poses can go
         d.valid[self.final:b] = False
@@ -295,7 +327,8 @@ class CorrectStage:
     def _trace(self, a: int, b: int) -> None:
         r = self.rows
         P, N, _ = self.path.forward(r.words[a:b], r.tcp[a:b])
-        _, N0, _ = self.path.forward(r.programmed[a:b], r.tcp[a:b])
+        # Rows as programmed (most of a program) have their programmed orientation: no second pass.
+        N0 = N if _same(r.words[a:b], r.programmed[a:b]).all() else self.path.forward(r.programmed[a:b], r.tcp[a:b])[1]
         previous = N[:-1]
         if a > 0 or self.prev_words is not None:
             w = r.words[a - 1:a] if a > 0 else self.prev_words[None, :]
@@ -363,7 +396,8 @@ class CorrectStage:
         for s, e in _runs(~ok, MERGE_GAP):
             s, e = a + s, a + e
             if s > covered:
-                prior.append(self.path.bead_points(self._moves(covered, s), radii=True))
+                if self.checker.bead_radius_mm > 0:
+                    prior.append(self.path.bead_points(self._moves(covered, s), radii=True))
                 covered = s
             pts = join_beads(prior, self.checker.bead_radius_mm) if prior else None
             hits, _ = self.path.check(self._moves(s, e), self.store, 0, commit=False, prior=pts,
@@ -658,26 +692,36 @@ def _boxes(C: np.ndarray, R: np.ndarray, corners: np.ndarray) -> tuple[np.ndarra
 def move_poses(path: PathChecker, moves: Moves, hits: MoveHits, corners: np.ndarray | None):
     """The poses of each move (a list of (tips (m, 3), rotations (m, 3, 3))): its samples, and
     its sweep start where that is known; and the world boxes (n, 3) lo and hi of the deposit
-    tree's balls at them (``corners``: ``_head_corners``; None, None without beads)."""
+    tree's balls at them (``corners``: ``_head_corners``; None, None without beads).
+
+    Whole arrays at once: each move's poses are views of one array of every move's poses (a
+    fix pays this for every row it detects, so it costs what the check costs, not a loop)."""
     n = len(moves)
     known = moves.known_start
     Cs, Rs = np.full((n, 3), np.nan), np.tile(np.eye(3), (n, 1, 1))
     if known.any():
         Ps, Ns, Rs[known] = path.forward(moves.w_start[known], moves.tcp[known])
         Cs[known] = Ps + path.standoff_mm * Ns
-    ends = np.append(hits.first[1:], len(hits.C))
-    poses = []
+    counts = np.diff(np.append(hits.first, len(hits.C)))
+    # Move i's poses start at first[i] + (sweep starts of the moves up to it); its sweep start first.
+    shift = np.cumsum(known) - known
+    begin = hits.first + shift
+    size = counts + known
+    total = int(size.sum())
+    C, R = np.empty((total, 3)), np.empty((total, 3, 3))
+    own = np.ones(total, dtype=bool)
+    own[begin[known]] = False
+    C[own], R[own] = hits.C, hits.R
+    C[begin[known]], R[begin[known]] = Cs[known], Rs[known]
+    ends = (begin + size).tolist()
+    poses = [(C[a:b], R[a:b]) for a, b in zip(begin.tolist(), ends)]
     lo = hi = None
     if corners is not None:
+        wlo, whi = _boxes(C, R, corners)
         lo, hi = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
-    for i in range(n):
-        C, R = hits.C[hits.first[i]:ends[i]], hits.R[hits.first[i]:ends[i]]
-        if known[i]:
-            C, R = np.vstack([Cs[i:i + 1], C]), np.concatenate([Rs[i:i + 1], R])
-        poses.append((C, R))
-        if corners is not None:
-            blo, bhi = _boxes(C, R, corners)
-            lo[i], hi[i] = blo.min(axis=0), bhi.max(axis=0)
+        has = size > 0
+        lo[has] = np.minimum.reduceat(wlo, begin[has], axis=0)
+        hi[has] = np.maximum.reduceat(whi, begin[has], axis=0)
     return poses, lo, hi
 
 
