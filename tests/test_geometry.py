@@ -328,18 +328,11 @@ def test_surface_cells_mark_every_cell_near_the_surface(sample_head):
 
 
 @pytest.mark.parametrize("pitch", [0.5, 0.8])
-def test_compiled_surface_cells_mark_the_same_cells_as_the_numpy_passes(sample_head, sample_mold, monkeypatch, pitch):
-    import ncfix.collision.voxelize as voxelize_module
-
-    if voxelize_module._surface_jit is None:
-        pytest.skip("numba is not installed")
+def test_compiled_surface_cells_mark_the_same_cells_as_the_numpy_passes(sample_head, sample_mold, pitch):
     for mesh in (sample_head, sample_mold):
         grid = voxelize(mesh.vertices, mesh.faces, pitch)
         args = (mesh.vertices, mesh.faces, grid.origin_mm, grid.shape, pitch, 0.5 * np.sqrt(3) * pitch + 1e-6)
-        compiled = surface_cells(*args)
-        with monkeypatch.context() as m:
-            m.setattr(voxelize_module, "_surface_jit", None)
-            assert np.array_equal(compiled, surface_cells(*args))
+        assert np.array_equal(surface_cells(*args), surface_cells(*args, compiled=False))
 
 
 # ---- head model --------------------------------------------------------------------------
