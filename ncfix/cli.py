@@ -1,4 +1,4 @@
-"""The command line: parse arguments, call the library, map exceptions to exit codes (CONTRACT.md)."""
+"""The command line: parse arguments, call the library, map exceptions to exit codes (docs/contract.md)."""
 
 from __future__ import annotations
 

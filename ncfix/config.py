@@ -19,7 +19,7 @@ PIVOTS = ("tip", "point")
 
 @dataclass(frozen=True)
 class Options:
-    """Every option of CONTRACT.md, in mm and degrees. Field names are the config keys."""
+    """Every option of docs/contract.md, in mm and degrees. Field names are the config keys."""
 
     machine: str = "ijk"
     head: str | None = None

@@ -15,7 +15,7 @@ only its sign is exact.
 Beads: spheres, checked analytically against the head above the tip allowance (the head clipped
 by the plane z = tip_allowance_mm in the head frame with manifold3d, so it stays a closed solid).
 
-Poses follow the CONTRACT: tip at C (workpiece mm), rotation R (3, 3) with R @ (0, 0, 1) = N;
+Poses follow docs/contract.md: tip at C (workpiece mm), rotation R (3, 3) with R @ (0, 0, 1) = N;
 a head-frame point x is at C + R @ x in the workpiece.
 """
 
@@ -177,7 +177,7 @@ def label_program(
     """The exact answer for a program: (line, bodies) of every motion block whose pose collides.
 
     Poses at the programmed orientation (tip C = P + h·N, rotation from the profile). Deposit by
-    the CONTRACT rule (E words: E grows; else between the deposit codes; else every feed move); each
+    the rule of docs/contract.md (E words: E grows; else between the deposit codes; else every feed move); each
     pose is checked against
     the beads laid before it, including the move that ends at it, as spheres ``bead_spacing_mm``
     apart along the path through P, each ``bead_drop_mm`` below it along the tool axis; a move

@@ -1,4 +1,4 @@
-"""The command line as CONTRACT.md describes it: I/O, config, exit codes and error messages."""
+"""The command line as docs/contract.md describes it: I/O, config, exit codes and error messages."""
 
 from __future__ import annotations
 

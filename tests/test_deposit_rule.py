@@ -1,7 +1,8 @@
 """Where the deposit model lays material: plunges and lifts at their lower end, beads below the tip.
 
-The rule (CONTRACT.md, README "Deposit"): a depositing move within ``AXIAL_DEG`` of the tool axis
-lays one bead, at its lower end; any other depositing move lays beads along it; G0 never deposits.
+The rule (docs/contract.md, docs/deposit.md): a depositing move within ``AXIAL_DEG`` of the tool axis,
+or one whose nozzle ploughs through its own extrudate (the head's shape decides), lays one bead, at
+its lower end; any other depositing move lays beads along it; G0 never deposits.
 A bead of width w and height h hangs below the nozzle tip with --standoff 0 (top at the tip) and
 is centred on P with a standoff; the checker's sphere of radius max(w, h)/2 contains it.
 """

@@ -1,4 +1,4 @@
-"""``--strategy epa``: blocks left colliding are left as programmed (CONTRACT.md), ramps go around them."""
+"""``--strategy epa``: blocks left colliding are left as programmed (docs/contract.md), ramps go around them."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The rolling deposit model: which blocks deposit, and the beads laid so far (a chain of spheres).
 
-Which blocks deposit (CONTRACT.md): a feed move (G1/G2/G3, never G0) deposits when the program has
+Which blocks deposit (docs/contract.md): a feed move (G1/G2/G3, never G0) deposits when the program has
 extrusion words and E grows (the modal reader gives ``e_delta`` > 0 for absolute and relative E);
 otherwise, with ``--deposit-codes``, between ON and OFF; otherwise every feed move deposits.
 "The program has extrusion words" is decided while streaming, on the first window (the first

@@ -245,7 +245,7 @@ class _EpisodeSolver:
                    f"{int(left.sum())} left, fixed {len(self.fixed)}, dropped {len(self.dropped)}, "
                    f"hopeless {len(self.hopeless)}, searches {self.searches}, new at {np.nonzero(bad & ~ep.is_colliding)[0].tolist()} "
                    f"(after a block left colliding: {np.nonzero(bad & ~ep.is_colliding & left)[0].tolist()})")
-            # Blocks left colliding are left as programmed (CONTRACT.md): one that a ramp passes
+            # Blocks left colliding are left as programmed (docs/contract.md): one that a ramp passes
             # through (a dropped level, a block whose move starts at one left colliding) is pinned
             # at its programmed orientation for good, and the ramps are laid out around it again.
             tilted = bad & left & changed

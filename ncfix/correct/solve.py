@@ -5,7 +5,7 @@ poses, the machine (orientation → words, reachability), a batched conservative
 orientations, and the full re-check of a solution (end poses, sweeps, and the solution's own
 beads). A strategy returns the words of every level and the rows it could not free.
 
-Pivot (CONTRACT.md): ``tip`` keeps the head tip C = P + h·N and moves the programmed point to
+Pivot (docs/contract.md): ``tip`` keeps the head tip C = P + h·N and moves the programmed point to
 P′ = C − h·N′; ``point`` keeps P (the tip moves to P + h·N′).
 """
 

@@ -59,7 +59,7 @@ _rodrigues = njit(cache=True, nogil=True)(_rodrigues)
 
 
 def rotation_from_z(n: np.ndarray) -> np.ndarray:
-    """The CONTRACT's head rotation for a tool vector: minimal rotation with ``R @ (0,0,1) = N``.
+    """The head rotation of docs/contract.md for a tool vector: minimal rotation with ``R @ (0,0,1) = N``.
 
     n : (3,) or (n, 3) float64, tool vectors (normalised here)
     returns : (3, 3) or (n, 3, 3) float64
@@ -80,7 +80,7 @@ def axis_rotation(axis: np.ndarray, angle_rad: np.ndarray) -> np.ndarray:
 
 
 def minimal_rotation(n: np.ndarray) -> np.ndarray:
-    """The smallest rotations taking +Z to each unit vector: n (m, 3) → (m, 3, 3) (CONTRACT spin rule)."""
+    """The smallest rotations taking +Z to each unit vector: n (m, 3) → (m, 3, 3) (the spin rule of docs/contract.md)."""
     n = np.ascontiguousarray(n, dtype=np.float64).reshape(-1, 3)
     z = np.zeros_like(n)
     z[:, 2] = 1.0

@@ -271,7 +271,7 @@ def load_head(
     tip: tuple[float, float, float] = (0.0, 0.0, 0.0),
     axis: tuple[float, float, float] = (0.0, 0.0, 1.0),
 ) -> LoadedMesh:
-    """load_mesh(path, 'head') then orient_head(tip, axis): the head in the CONTRACT's head frame."""
+    """load_mesh(path, 'head') then orient_head(tip, axis): the head in the head frame of docs/contract.md."""
     return orient_head(load_mesh(path, "head"), tip, axis)
 
 

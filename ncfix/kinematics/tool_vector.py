@@ -1,7 +1,7 @@
 """Tool-vector machines (Fanuc G43.5 I J K, Siemens A3= B3= C3=, Heidenhain LN TX TY TZ).
 
 The control solves its own inverse kinematics; the program carries the tip point and the
-vector. The head's spin about N is the minimal rotation from +Z (CONTRACT.md).
+vector. The head's spin about N is the minimal rotation from +Z (docs/contract.md).
 """
 
 from __future__ import annotations

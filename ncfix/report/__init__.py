@@ -281,7 +281,7 @@ class Report:
 
     @property
     def exit_code(self) -> int:
-        """0: no collision left; 1: collisions remain (CONTRACT.md)."""
+        """0: no collision left; 1: collisions remain (docs/contract.md)."""
         if self.options.check:
             return 1 if self.summary["colliding_blocks_before"] else 0
         return 1 if self.summary["unresolved_blocks"] else 0
@@ -321,7 +321,7 @@ class Report:
                 f"{plural(blended, 'ramp block')} blended; the output has no detected collision: exit 0")
 
     def exit_meaning(self) -> str:
-        """What the exit status means for this run (CONTRACT.md), in a sentence."""
+        """What the exit status means for this run (docs/contract.md), in a sentence."""
         if self.exit_code == 0:
             return "Exit status 0: the output has no detected collision."
         if self.options.check:
