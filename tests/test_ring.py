@@ -20,19 +20,21 @@ WAYPOINT_LAYERS = (0, 60, 120, 180, 244)
 SINGULAR_DEG = 6.0  # the slicer writes no tilt below this (B = 0, or B held at the cone's edge)
 
 
-def ring_layers(profile) -> list[list[tuple[int, np.ndarray]]]:
-    """(line, words X Y Z C B) of the blocks that carry all of X Y Z B C A, per layer; a layer
-    starts at its `G1 F650` (layer 0) or `G1 F750` line."""
+def ring_layers(profile, printing: bool = True) -> list[list[tuple[int, np.ndarray, bool]]]:
+    """(line, words X Y Z C B, TCP as read) of the blocks that carry all of X Y Z B C A (of every
+    motion block with ``printing=False``), per layer; a layer starts at its `G1 F650` (layer 0)
+    or `G1 F750` line."""
     interp = Interpreter(profile, "ring_Gcode.txt")
-    layers: list[list[tuple[int, np.ndarray]]] = []
+    layers: list[list[tuple[int, np.ndarray, bool]]] = []
     with open(corpus_path("s3_deformfdm", "ring_Gcode.txt"), "rb") as handle:
         for lineno, raw in enumerate(handle, start=1):
             text = raw.decode("ascii")
             block = interp.feed(lineno, text)
             if text.startswith(("G1 F650", "G1 F750")):
                 layers.append([])
-            elif layers and block.motion == 1 and {w[0] for w in text.split()} >= set("XYZBCA"):
-                layers[-1].append((lineno, np.array(block.words)))
+            elif layers and block.motion is not None and (
+                    not printing or block.motion == 1 and {w[0] for w in text.split()} >= set("XYZBCA")):
+                layers[-1].append((lineno, np.array(block.words), block.tcp))
     return layers
 
 
@@ -81,7 +83,8 @@ def test_the_ring_program_takes_the_poses_of_its_waypoints(profile, layers):
         points, raw_axes = waypoints(k)
         rows = layers[k]
         assert len(rows) == len(points), k
-        words = np.array([w for _, w in rows])
+        assert not any(tcp for _, _, tcp in rows)  # the profile reads the program with TCP off
+        words = np.array([w for _, w, _ in rows])
         p, n, rot = profile.kinematics.forward(words, tcp=False)
         tip_error = np.linalg.norm(p - points, axis=1)
         assert tip_error.max() < 0.02, (k, rows[int(tip_error.argmax())][0], tip_error.max())
@@ -120,13 +123,33 @@ def test_the_ring_map_is_the_fitted_closed_form(profile):
     assert np.abs(n - expected).max() < 1e-12
 
 
+def test_the_ring_profile_is_the_head_table_family_as_the_machine_is(profile):
+    """The profile states the machine with the head-table family's own keys, nothing special to
+    it: the first axis C turns the table about Z (continuous: written unwound), the second B tilts
+    the head about X around its 77.36 mm pivot, the part frame 0.3 mm above the table, TCP off
+    whatever the program says, A the filament."""
+    from ncfix.kinematics.head_table import HeadTable
+    from ncfix.kinematics.rotary import TwoAxisChain
+
+    kin = profile.kinematics
+    assert profile.kinematics_name == "head_table" and type(kin) is TwoAxisChain
+    assert type(kin.transform) is HeadTable and profile.tcp == "never" and profile.extrusion_letter == "A"
+    c, b = kin.axes
+    assert (c.letter, c.direction, c.sign, c.mode, c.on_head) == ("C", (0.0, 0.0, 1.0), 1, "continuous", False)
+    assert (b.letter, b.direction, b.sign, b.on_head) == ("B", (1.0, 0.0, 0.0), -1, True)
+    assert kin.transform.pivot_length_mm == 77.36
+    assert kin.transform.o.tolist() == [0.0, 0.0, 0.3] and kin.transform.c.tolist() == [0.0, 0.0, 0.0]
+    interp = Interpreter(profile, "ring")
+    assert not interp.feed(1, "G43.4 H1\n").tcp and not interp.feed(2, "G1 X1 Y2 Z3 B10 C20 A1\n").tcp
+
+
 def test_the_ring_blocks_round_trip_through_the_inverse(profile, layers):
     """pose → words with the previous block as reference gives back the program's own words
     (within its 2-decimal rounding) on the waypoint layers: same branch, C unwound in the layer,
     C held where B = 0 (the pole)."""
     kin = profile.kinematics
     for k in WAYPOINT_LAYERS:
-        words = np.array([w for _, w in layers[k]])
+        words = np.array([w for _, w, _ in layers[k]])
         p, n, _ = kin.forward(words, tcp=False)
         for i in range(1, len(words)):
             back = kin.inverse(p[i], n[i], words[i - 1], tcp=False)
@@ -194,6 +217,7 @@ def fix_and_read_back(data: bytes, monkeypatch, standoff: float, **settings) -> 
     before, after = data.decode().splitlines(True), out.getvalue().decode().splitlines(True)
     assert changed and [i + 1 for i, (a, b) in enumerate(zip(before, after)) if a != b] == sorted(changed)
     interp_in, interp_out = Interpreter(profile, "in.nc"), Interpreter(profile, "out.nc")
+    b_turn = 0.0
     for lineno, (a, b) in enumerate(zip(before, after), start=1):
         old, new = interp_in.feed(lineno, a), interp_out.feed(lineno, b)
         if lineno not in changed:
@@ -205,8 +229,10 @@ def fix_and_read_back(data: bytes, monkeypatch, standoff: float, **settings) -> 
         assert np.abs(p_read - p_check).max() < 1e-9 and np.abs(n_read - n_check).max() < 1e-12
         p_old, n_old = ring_pose(np.array(old.words)[None])
         assert np.abs(p_read + standoff * n_read - (p_old + standoff * n_old)).max() < 0.03
+        b_turn = max(b_turn, abs(new.words[4] - old.words[4]))
         # only position and orientation words change: the filament (A) and feed stay as written
         assert [w for w in a.split() if w[0] not in "XYZBC"] == [w for w in b.split() if w[0] not in "XYZBC"]
+    assert b_turn > 1.0  # B turns: its point kept in place needs the 77.36 mm pivot in the inverse
     again = ncfix.process(io.BytesIO(out.getvalue()), io.BytesIO(), check=True, **settings)
     assert again.summary["colliding_blocks_before"] == 0
     return len(changed)
@@ -261,26 +287,45 @@ def test_rewritten_ring_blocks_read_back_to_the_pose_that_was_checked(tmp_path, 
 
 # -- the ring as a real print: its nozzle, its platform where the printer has it ----------------
 
-def placed_platform(folder: Path, raise_mm: float = 0.0) -> str:
-    """platform_converted.stl (Y-up, top face at y = 0) as the printer has it in the part frame:
-    turned Z-up ((x, y, z) → (x, −z, y), a turn of +90° about X) and moved by −0.3 mm in Z (the
-    table's top, 0.3 mm under the slicer's frame, so under the first layer); ``raise_mm`` lifts it."""
+PLATFORM = str(corpus_path("s3_deformfdm", "platform_converted.stl"))
+
+
+def placed_platform(raise_mm: float = 0.0) -> list:
+    """platform_converted.stl as --platform places it with this profile (its [platform]), then
+    raised by ``raise_mm`` (``@translate``, applied after the profile's placement)."""
+    import ncfix.config
+    from ncfix.pipeline import load_parts
+
+    path = PLATFORM + (f"@translate=0,0,{raise_mm:g}" if raise_mm else "")
+    return load_parts(ncfix.config.Options(platform=path), load_profile(PROFILE))
+
+
+def test_the_profile_places_the_platform_as_the_printer_has_it(profile, layers):
+    """The Y-up platform (400 x 20 x 400 mm, top face at y = 0) turned Z-up ((x, y, z) → (x, −z, y))
+    with its top 0.3 mm under the part frame, where the table is: under the first layer, whose
+    tips lie 0.33-0.73 mm above it; raised 1 mm, its top is above all of them."""
     import trimesh
 
-    mesh = trimesh.load(corpus_path("s3_deformfdm", "platform_converted.stl"))
-    mesh.apply_transform(trimesh.transformations.rotation_matrix(math.pi / 2, [1, 0, 0]))
-    mesh.apply_translation([0.0, 0.0, -0.3 + raise_mm])
-    path = folder / f"platform_{raise_mm:g}.stl"
-    mesh.export(path)
-    return str(path)
+    raw = trimesh.load(PLATFORM)
+    (placed,) = placed_platform()
+    turned = np.stack([raw.vertices[:, 0], -raw.vertices[:, 2], raw.vertices[:, 1] - 0.3], axis=1)
+    assert np.abs(placed.mesh.vertices - turned).max() < 1e-9
+    assert np.abs(placed.mesh.bounds - [[-200.0, -200.0, -20.3], [200.0, 200.0, -0.3]]).max() < 1e-4
+    tips, _, _ = profile.kinematics.forward(np.array([w for _, w, _ in layers[0]]), tcp=False)
+    assert 0.3 < tips[:, 2].min() + 0.3 and tips[:, 2].max() + 0.3 < 0.75
+    (raised,) = placed_platform(1.0)
+    assert raised.mesh.bounds[1, 2] == pytest.approx(0.7, abs=1e-4) and tips[:, 2].max() < 0.7
 
 
-def ring_print(check: bool, platform: str, out: Path):
+def ring_print(check: bool, out: Path, raise_mm: float = 0.0):
+    """The ring with its nozzle and the platform placed by the profile (--platform), deposit
+    model off: --head-axis 0,1,0 turns the nozzle's +Y onto the tool axis."""
     import ncfix
 
+    platform = PLATFORM + (f"@translate=0,0,{raise_mm:g}" if raise_mm else "")
     return ncfix.process(str(corpus_path("s3_deformfdm", "ring_Gcode.txt")), str(out), machine=PROFILE,
                          head=str(corpus_path("s3_deformfdm", "nozzle_converted.stl")), head_axis=(0.0, 1.0, 0.0),
-                         part=[platform], standoff=0.0, bead_radius=0.0, check=check, device="cpu")
+                         platform=platform, standoff=0.0, bead_radius=0.0, check=check, device="cpu")
 
 
 @pytest.mark.heavy  # three runs over 68,866 blocks and the 400 mm platform's grid: about 2 minutes
@@ -290,15 +335,14 @@ def test_the_ring_prints_clear_of_its_platform_and_a_raised_platform_is_hit(tmp_
     1 mm higher (into the first layer) the first layer's blocks are flagged, and no other: its 334
     printing blocks and the lift that leaves it."""
     source = corpus_path("s3_deformfdm", "ring_Gcode.txt")
-    platform = placed_platform(tmp_path)
-    report = ring_print(True, platform, tmp_path / "check.nc")
+    report = ring_print(True, tmp_path / "check.nc")
     assert report.summary["colliding_blocks_before"] == 0 and report.exit_code == 0
 
-    report = ring_print(False, platform, tmp_path / "fix.nc")
+    report = ring_print(False, tmp_path / "fix.nc")
     assert report.summary["colliding_blocks_before"] == 0 and report.summary["changed_blocks"] == 0
     assert (tmp_path / "fix.nc").read_bytes() == source.read_bytes()
 
-    report = ring_print(True, placed_platform(tmp_path, raise_mm=1.0), tmp_path / "raised.nc")
+    report = ring_print(True, tmp_path / "raised.nc", raise_mm=1.0)
     lines = source.read_text().splitlines()
     first, second = [i + 1 for i, text in enumerate(lines) if text in ("G1 F650", "G1 F750")][:2]
     printing = [n for n in range(first + 1, second) if {w[0] for w in lines[n - 1].split()} >= set("XYZBCA")]
@@ -310,7 +354,7 @@ def test_the_ring_prints_clear_of_its_platform_and_a_raised_platform_is_hit(tmp_
 @pytest.mark.heavy  # one check of 68,866 blocks with the deposit model on: 1-2 minutes
 def test_the_ring_prints_clear_of_its_own_material(tmp_path):
     """The recipe (samples/ring.toml: nozzle, platform, round beads 0.8 mm wide): the program
-    printed, and --check flags nothing. Its tilted layers open with 2 mm plunges 12° off the
+    printed, and --check flags nothing. Its tilted layers open with 2 mm plunges up to 31° off the
     nozzle's axis that extrude on the way down; the nozzle's flat cone passes through their
     material, which therefore ends at their lower ends (``ncfix.collision.plough``). Laid as
     columns, 4,727 blocks were flagged."""
@@ -322,3 +366,45 @@ def test_the_ring_prints_clear_of_its_own_material(tmp_path):
     report = ncfix.process(str(source), str(out), config=str(config), check=True, device="cpu")
     assert report.summary["colliding_blocks_before"] == 0 and report.exit_code == 0
     assert out.read_bytes() == source.read_bytes()
+
+
+LAYER_SURFACES = (0, 120, 244)  # ring_layer/: the slicer's layer surfaces (Y-up, like its waypoints)
+
+
+@pytest.mark.heavy  # exact mesh distances along five layers' moves and a second read of the program: 20-30 s
+def test_the_nozzle_keeps_clear_of_the_layer_surfaces_it_prints_on(profile, layers):
+    """What the deposit model's empty answer means in the print's own geometry. The slicer's layer
+    surfaces, turned Z-up like the waypoints, hold their layer's printing tips (median 0.003 mm
+    away). At every motion block of such a layer and of the layer after it, and along their
+    moves (poses at most 0.25 mm of tip path and 0.5° of C or B apart, the axes interpolated
+    linearly as the controller does with TCP off), the nozzle above its 1 mm tip allowance keeps
+    0.89 mm or more from the surface (exact mesh distance; a hit would be ≤ 0): 0.8997 mm at
+    layer 0, 0.97 at layers 120 and 244, 1.75 at layer 1 over the layer-0 surface."""
+    import trimesh
+
+    from ncfix.collision.exact import ExactParts, clip_head
+    from ncfix.geometry.mesh import load_head
+
+    kin = profile.kinematics
+    head = load_head(str(corpus_path("s3_deformfdm", "nozzle_converted.stl")), axis=(0.0, 1.0, 0.0)).mesh
+    above_allowance = clip_head(head, 1.0)  # samples/ring.toml: tip_allowance = 1.0
+    moves = ring_layers(profile, printing=False)
+    least: dict[tuple[int, int], float] = {}
+    for k in LAYER_SURFACES:
+        surface = trimesh.load(corpus_path("s3_deformfdm", "ring_layer", f"{k}.obj"), force="mesh")
+        surface.apply_transform(trimesh.transformations.rotation_matrix(math.pi / 2, [1, 0, 0]))
+        tips, _, _ = kin.forward(np.array([w for _, w, _ in layers[k]]), tcp=False)
+        assert np.median(trimesh.proximity.closest_point(surface, tips)[1]) < 0.01
+        exact = ExactParts(above_allowance, {"layer": surface}, open_parts=("layer",))
+        for layer in (k, k + 1)[:len(moves) - k]:
+            ends = np.array([w for _, w, _ in moves[layer]])
+            starts = np.vstack([moves[layer - 1][-1][1] if layer else ends[0], ends[:-1]])
+            a, _, _ = kin.forward(starts, tcp=False)
+            b, _, _ = kin.forward(ends, tcp=False)
+            steps = np.maximum(np.linalg.norm(b - a, axis=1) / 0.25, np.abs(ends - starts)[:, 3:].max(axis=1) / 0.5)
+            poses = np.vstack([s + t * (e - s) for s, e, m in zip(starts, ends, np.ceil(steps).astype(int))
+                               for t in np.linspace(0.0, 1.0, max(m, 1) + 1)[1:, None]])
+            tip, _, rot = kin.forward(poses, tcp=False)
+            least[layer, k] = float(exact.clearances(tip, rot)[0].min())
+    assert min(least.values()) >= 0.89, least
+    assert set(least) == {(0, 0), (1, 0), (120, 120), (121, 120), (244, 244)}
