@@ -90,6 +90,7 @@ def _process_options(src: Source, dst: Source, options: Options, progress: Progr
             target = os.fspath(dst)
             with atomic_output(target) as out:
                 report = run(stream, out, options, source, progress)
+                out.flush()  # a full disk says so here, before any report is written
                 _write_extras(report, options, source, target)  # the program appears only if these worked
         else:
             raw = _binary(dst, "dst")

@@ -151,7 +151,8 @@ def atomic_output(path: str) -> Iterator[BinaryIO]:
         raise NcfixError(f"cannot write '{path}': {exc.strerror}", fix="check the folder's permissions") from None
     _PENDING.add(tmp)
     try:
-        with os.fdopen(fd, "wb") as handle:
+        handle = os.fdopen(fd, "wb")
+        try:
             out = Output(handle, path)
             yield out  # type: ignore[misc]
             out.flush()
@@ -160,7 +161,14 @@ def atomic_output(path: str) -> Iterator[BinaryIO]:
             except OSError as exc:
                 if exc.errno not in (errno.EINVAL, errno.ENOTSUP):  # file systems without fsync
                     raise write_error(path, exc) from None
+        except BaseException:
+            # Closing flushes what the failed write left in the buffer, and fails the same way:
+            # the first error is the one to report.
+            with contextlib.suppress(OSError):
+                handle.close()
+            raise
         try:
+            handle.close()
             os.chmod(tmp, _mode_for(target))
             os.replace(tmp, target)
         except OSError as exc:

@@ -198,15 +198,29 @@ class FullDisk:
         self.raw.close()
 
 
+class FullFile(io.FileIO):
+    """A file on a full file system under a buffered writer: small writes fill the buffer and the
+    failure comes at the flush, and again when the file is closed (as on a full tmpfs)."""
+
+    def write(self, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+@pytest.mark.parametrize("when", ["write", "flush"])
 @pytest.mark.parametrize("target", ["output", "report"])
 def test_a_full_file_system_leaves_neither_output_nor_temporary_file(tmp_path, program, monkeypatch, capsysbinary,
-                                                                     target):
+                                                                     target, when):
     import ncfix.fileio as fileio
 
     real_fdopen = os.fdopen
     full = tmp_path / ("out.nc" if target == "output" else "r.json")
-    monkeypatch.setattr(fileio.os, "fdopen", lambda fd, mode: FullDisk(real_fdopen(fd, mode), 0)
-                        if f".{full.name}." in os.readlink(f"/proc/self/fd/{fd}") else real_fdopen(fd, mode))
+
+    def fdopen(fd, mode):
+        if f".{full.name}." not in os.readlink(f"/proc/self/fd/{fd}"):
+            return real_fdopen(fd, mode)
+        return FullDisk(real_fdopen(fd, mode), 0) if when == "write" else io.BufferedWriter(FullFile(fd, mode))
+
+    monkeypatch.setattr(fileio.os, "fdopen", fdopen)
     status, _, err = run_main([program, "-q", "-o", tmp_path / "out.nc", "--report", tmp_path / "r.json"],
                               capsysbinary)
     assert status == 2
