@@ -41,7 +41,7 @@ def laid_beads(text: str, *, standoff: float = 0.0, width: float = 0.8, height: 
     checker = SimpleNamespace(bead_radius_mm=bead.radius_mm, bead_drop_mm=bead.drop_mm, head=head)
     path = PathChecker(checker, profile, standoff, pitch)
     options = Options(standoff=standoff, pitch=pitch)
-    rows_of = MotionRows(path, profile, options)
+    rows_of = MotionRows(path, options)
     out = []
     for chunk in read_chunks(io.BytesIO(text.encode()), Interpreter(profile, "<test>", None)):
         rows = np.nonzero(chunk.motion >= 0)[0]

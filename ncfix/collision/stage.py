@@ -18,9 +18,8 @@ from ncfix.geometry.mesh import check_part_overlaps
 class MotionRows:
     """Turns chunks into runs of moves: carries the previous motion block's words across chunks."""
 
-    def __init__(self, path: PathChecker, profile, options):
+    def __init__(self, path: PathChecker, options):
         self.path = path
-        self.tcp_mode = profile.tcp
         self.options = options
         self.rule = None
         self.prev_words: np.ndarray | None = None
@@ -29,11 +28,7 @@ class MotionRows:
         self.arcs = 0
 
     def tcp(self, chunk, rows) -> np.ndarray:
-        if self.tcp_mode == "never":
-            return np.zeros(len(rows), dtype=bool)
-        if self.tcp_mode == "always":
-            return np.ones(len(rows), dtype=bool)
-        return chunk.tcp[rows].astype(bool)
+        return self.path.poses.tcp(chunk, rows)
 
     def deposit(self, chunk) -> np.ndarray:
         if self.rule is None:
@@ -145,7 +140,7 @@ class CheckStage:
         self.placed_parts = list(placed_parts)
         self.checker = checker
         self.path = PathChecker(checker, profile, options.standoff, options.pitch)
-        self.motion = MotionRows(self.path, profile, options)
+        self.motion = MotionRows(self.path, options)
         self.options = options
         self.report = report
         self.window = int(options.window)

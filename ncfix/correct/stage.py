@@ -223,7 +223,7 @@ class CorrectStage:
         self.strategy = strategy
         self.placed_parts = list(placed_parts)
         self.path = PathChecker(checker, profile, options.standoff, options.pitch)
-        self.motion = MotionRows(self.path, profile, options)
+        self.motion = MotionRows(self.path, options)
         self.window = int(options.window)
         self.ramp = int(math.ceil(options.max_tilt / options.max_step)) + 1
         self.gap = 2 * self.ramp + 1
