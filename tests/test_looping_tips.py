@@ -58,7 +58,7 @@ def laid(text: str, bead: BeadShape):
     profile = load_profile(MACHINE)
     checker = SimpleNamespace(bead_radius_mm=bead.radius_mm, bead_drop_mm=bead.drop_mm, bead_shape=bead)
     path = PathChecker(checker, profile, 0.0, PITCH)
-    rows_of = MotionRows(path, Options(standoff=0.0, pitch=PITCH))
+    rows_of = MotionRows(path, profile, Options(standoff=0.0, pitch=PITCH))
     out = []
     for chunk in read_chunks(io.BytesIO(text.encode()), Interpreter(profile, "<test>", None)):
         rows = np.nonzero(chunk.motion >= 0)[0]

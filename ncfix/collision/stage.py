@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ncfix.collision.checker import Checker
-from ncfix.collision.deposit import BeadStore, choose_rule, depositing
+from ncfix.collision.deposit import BeadStore, choose_rule, depositing, rule_text
 from ncfix.collision.depth import move_poses
 from ncfix.collision.path import MoveHits, Moves, PathChecker
 from ncfix.geometry.mesh import check_part_overlaps
@@ -18,8 +18,9 @@ from ncfix.geometry.mesh import check_part_overlaps
 class MotionRows:
     """Turns chunks into runs of moves: carries the previous motion block's words across chunks."""
 
-    def __init__(self, path: PathChecker, options):
+    def __init__(self, path: PathChecker, profile, options):
         self.path = path
+        self.extrusion_letter = profile.extrusion_letter
         self.options = options
         self.rule = None
         self.prev_words: np.ndarray | None = None
@@ -57,6 +58,12 @@ class MotionRows:
         keep = known_end
         moves = Moves(w_start[keep], w_end[keep], tcp[keep], known_start[keep], dep[rows][keep], arc[keep])
         return rows[keep], moves
+
+    def rule_text(self) -> str | None:
+        """The deposit rule the program was read with, as the report states it."""
+        if self.rule is None:
+            return None
+        return rule_text(self.rule, self.extrusion_letter)
 
     def warnings(self) -> list[str]:
         out = []
@@ -140,7 +147,7 @@ class CheckStage:
         self.placed_parts = list(placed_parts)
         self.checker = checker
         self.path = PathChecker(checker, profile, options.standoff, options.pitch)
-        self.motion = MotionRows(self.path, options)
+        self.motion = MotionRows(self.path, profile, options)
         self.options = options
         self.report = report
         self.window = int(options.window)
@@ -172,6 +179,5 @@ class CheckStage:
     def flush(self):
         self.report.warnings.extend(self.motion.warnings())
         self.report.summary["checked_samples"] = self.samples
-        rule = self.motion.rule
-        self.report.summary["deposit_rule"] = rule.value if rule else None
+        self.report.summary["deposit_rule"] = self.motion.rule_text()
         return []
