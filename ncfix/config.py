@@ -18,6 +18,18 @@ PIVOTS = ("tip", "point")
 
 
 @dataclass(frozen=True)
+class EpaOptions:
+    """The epa strategy's own settings: not command-line options, for the API, tests and
+    benchmarks that tune the walk (docs/correction.md)."""
+
+    variant: str = "lami"  # "lami": tilt budgets from the walk's own steps; "fixed": a fixed step
+    step_deg: float | None = None  # the walk's step; None: half of --resolution
+    threshold: float = 0.05  # CoACD's concavity threshold for the head's convex pieces
+    cache_dir: str | None = None  # the decomposition cache; None: $NCFIX_CACHE or ~/.cache/ncfix
+    graph_fallback: bool = True  # the graph searches again the episodes the walk leaves colliding
+
+
+@dataclass(frozen=True)
 class Options:
     """Every option of docs/contract.md, in mm and degrees. Field names are the config keys."""
 
@@ -48,10 +60,10 @@ class Options:
     window: int = 2000
     quiet: bool = False
     verbose: bool = False
-    extra: dict[str, Any] = field(default_factory=dict, compare=False)
+    epa: EpaOptions = field(default_factory=EpaOptions)  # --strategy epa's settings (not a config key)
 
 
-OPTION_NAMES = tuple(f.name for f in fields(Options) if f.name != "extra")
+OPTION_NAMES = tuple(f.name for f in fields(Options) if f.name != "epa")
 
 
 def load_config(path: Path, explicit: bool) -> dict[str, Any]:

@@ -12,6 +12,7 @@ import numpy as np
 
 from ncfix.config import Options
 from ncfix.errors import ConfigError
+from ncfix.kinematics.poses import PoseMap, program_poses
 from ncfix.nc.chunk import Chunk
 from ncfix.nc.modal import Interpreter
 from ncfix.nc.orientation import resolve_auto
@@ -46,29 +47,19 @@ def program_box(stream: BinaryIO, profile: Profile, options: Options, source: st
     """(2, 3) box of every programmed point P and tip C = P + h·N (arcs: their whole circle), read
     in a first pass over a seekable file (which is then rewound); None for a pipe or a program
     without a checkable motion block. The part grids are cropped to it (``build_stages``)."""
-    from ncfix.collision.path import PathChecker
-    from ncfix.collision.stage import MotionRows
-
     try:
         if not stream.seekable():
             return None
         start = stream.tell()
     except (AttributeError, OSError, ValueError):
         return None
-    path = PathChecker(None, profile, options.standoff, options.pitch)  # forward kinematics only
-    motion = MotionRows(path, profile, options)
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     try:
-        for chunk in read_chunks(stream, Interpreter(profile, source, options.deposit_codes)):
-            rows = np.nonzero(chunk.motion >= 0)[0]
-            words = chunk.words[rows]
-            ok = np.isfinite(words).all(axis=1)
-            rows, words = rows[ok], words[ok]
-            if not len(rows):
-                continue
-            P, N, _ = path.forward(path.normalise(words), motion.tcp(chunk, rows))
-            pts = [P, P + options.standoff * N]
-            arc = chunk.arc[rows]
+        chunks = read_chunks(stream, Interpreter(profile, source, options.deposit_codes))
+        for chunk, poses in program_poses(chunks, PoseMap(profile)):
+            P = poses.P
+            pts = [P, P + options.standoff * poses.N]
+            arc = chunk.arc[poses.rows]
             on_arc = np.isfinite(arc[:, 0])
             if on_arc.any():
                 radius = np.linalg.norm(P[on_arc] - arc[on_arc, :3], axis=1)[:, None]

@@ -32,6 +32,7 @@ from ncfix.collision.deposit import (LOOP_PROBE, LOOP_RATIO, BeadShape, axial_mo
 from ncfix.collision.exact import ExactParts, bvh, clip_head
 from ncfix.collision.plough import ploughing_moves
 from ncfix.geometry.distance import point_mesh_distance, winding_numbers
+from ncfix.kinematics.poses import PoseMap
 from ncfix.nc.modal import Interpreter
 from ncfix.profiles import load_profile
 
@@ -193,18 +194,10 @@ def label_program(
     with open(path, "rb") as handle:
         chunk = interpreter.feed_chunk(handle.readlines(), 1)
     moving = np.flatnonzero(chunk.motion >= 0)
-    if profile.tcp == "program":
-        tcp = chunk.tcp[moving]
-    else:
-        tcp = np.full(len(moving), profile.tcp != "never")
+    poses = PoseMap(profile)
+    tcp = poses.tcp(chunk, moving)
     words = chunk.words[moving]
-    p = np.empty((len(moving), 3))
-    n = np.empty((len(moving), 3))
-    r = np.empty((len(moving), 3, 3))
-    for flag in (True, False):
-        sel = tcp == flag
-        if sel.any():
-            p[sel], n[sel], r[sel] = profile.kinematics.forward(words[sel], tcp=bool(flag))
+    p, n, r = poses.forward(words, tcp)
     has_e = not np.isnan(chunk.e_delta).all()
     head_triangles = np.asarray(head.triangles, dtype=np.float64)
     shape = bead_shape if bead_shape is not None else BeadShape(2.0 * bead_radius_mm, 2.0 * bead_radius_mm,

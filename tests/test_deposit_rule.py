@@ -242,3 +242,13 @@ def test_no_pose_that_touches_the_stated_bead_is_called_free():
 def test_a_bead_section_is_a_width_and_a_height(cli, message):
     with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
         ncfix.config.build_options({}, cli)
+
+
+@pytest.mark.parametrize("machine, letter", [("multiaxis-3dp-bc", "E"), ("s3-deformfdm-bc", "A")])
+def test_the_report_names_the_profiles_extrusion_word(machine, letter):
+    """The extrusion rule reads the profile's extrusion word (A on the S3 ring printer), and the
+    report says which word it read."""
+    data = f"G90\nG1 X0 Y0 Z5 B0 C0 F600\nG1 X1 {letter}0.1\nG1 X2 {letter}0.2\n".encode()
+    report = ncfix.process(io.BytesIO(data), io.BytesIO(), machine=machine, check=True, standoff=0.0,
+                           head=str(HEAD))
+    assert report.summary["deposit_rule"] == f"extrusion words ({letter} grows)"

@@ -106,7 +106,7 @@ def shadow(monkeypatch):
 
     def checked(self, a, b):
         hits = detect(self, a, b)
-        fresh, _ = self.path.check(self._moves(a, b), self.store, 0, commit=False)
+        fresh, _ = self.path.check(self.moves(a, b), self.store, 0, commit=False)
         rows = np.nonzero((hits.part_hit != fresh.part_hit).any(axis=1) | (hits.deposit_hit != fresh.deposit_hit)
                           | (hits.deposit_clearance != fresh.deposit_clearance)
                           | ((hits.sample >= 0) != (fresh.sample >= 0)))[0]
@@ -200,7 +200,7 @@ def _fresh(ep, words) -> np.ndarray:
     saved = r.words[ep.first:end].copy()
     try:
         r.words[ep.first:ep.last + 1] = stage.as_printed(ep.rows, words)
-        hits, _ = stage.path.check(stage._moves(ep.first, end), stage.store, 0, commit=False)
+        hits, _ = stage.path.check(stage.moves(ep.first, end), stage.store, 0, commit=False)
     finally:
         r.words[ep.first:end] = saved
     bad = hits.any

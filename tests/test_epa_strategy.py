@@ -12,7 +12,7 @@ import pytest
 import trimesh
 
 import ncfix.correct.strategies as strategies
-from ncfix.config import Options
+from ncfix.config import EpaOptions, Options
 from ncfix.correct.epa_strategy import DEFAULT_VARIANT, EpaStrategy, fill_offsets, keep_chain
 from ncfix.errors import ConfigError
 from ncfix.geometry.frames import angle_between_deg, rotation_from_z
@@ -118,9 +118,9 @@ def test_chains_go_through_the_levels_that_must_stay():
 
 def test_options_choose_the_variant():
     assert EpaStrategy(Options()).variant == DEFAULT_VARIANT == "lami"
-    assert EpaStrategy(replace(Options(), extra={"epa_variant": "fixed"})).variant == "fixed"
+    assert EpaStrategy(replace(Options(), epa=EpaOptions(variant="fixed"))).variant == "fixed"
     with pytest.raises(ConfigError, match="unknown EPA variant 'best'.*fixed, lami"):
-        EpaStrategy(replace(Options(), extra={"epa_variant": "best"}))
+        EpaStrategy(replace(Options(), epa=EpaOptions(variant="best")))
     strategy = EpaStrategy(Options())
     assert strategy.name == "epa" and strategy.model is None  # built on the first solve
 
@@ -219,7 +219,7 @@ def test_a_wall_beside_the_pass_is_avoided_by_both_variants(made, head, tmp_path
     limits = dict(max_tilt=15.0, max_step=3.0)
     for variant in ("lami", "fixed"):
         out, report = _run(data, part=(str(tmp_path / "wall.stl"),), bead_radius=0.0,
-                           extra={"epa_variant": variant}, **limits)
+                           epa=EpaOptions(variant=variant), **limits)
         strategy = made[-1]
         assert strategy.variant == variant
         assert report.exit_code == 0 and report.summary["unresolved_blocks"] == 0
@@ -369,7 +369,7 @@ def test_blocks_the_walk_leaves_colliding_are_searched_by_the_graph(made, head, 
     limits = dict(max_tilt=15.0, max_step=3.0)
     part = (str(tmp_path / "wall.stl"),)
 
-    out, report = _run(data, part=part, bead_radius=0.0, extra={"epa_graph_fallback": False}, **limits)
+    out, report = _run(data, part=part, bead_radius=0.0, epa=EpaOptions(graph_fallback=False), **limits)
     assert report.exit_code == 1 and len(report.unresolved) == 8 and out == data
     assert made[-1].graph is None and made[-1].last["left_by_epa"] == 8
 
@@ -383,8 +383,8 @@ def test_blocks_the_walk_leaves_colliding_are_searched_by_the_graph(made, head, 
 
 
 def test_the_graph_fallback_takes_true_or_false():
-    with pytest.raises(ConfigError, match="epa_graph_fallback"):
-        EpaStrategy(replace(Options(), extra={"epa_graph_fallback": "yes"}))
+    with pytest.raises(ConfigError, match="graph_fallback"):
+        EpaStrategy(replace(Options(), epa=EpaOptions(graph_fallback="yes")))
 
 
 def test_the_graph_leaves_the_blocks_programmed_where_max_tilt_is_below_its_coarse_spacing(tmp_path):

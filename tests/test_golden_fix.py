@@ -28,15 +28,14 @@ LEVER_MM = 250.0
 
 def _poses(data: bytes, profile):
     """Tip C, tool vector N and rotation R of every motion block with every axis known."""
-    from ncfix.collision.path import PathChecker
-    from ncfix.collision.stage import MotionRows
+    from ncfix.kinematics.poses import PoseMap
 
     chunk = Interpreter(profile).feed_chunk(data.splitlines(keepends=True), 1)
     rows = np.nonzero(chunk.motion >= 0)[0]
     words = chunk.words[rows]
     rows, words = rows[np.isfinite(words).all(axis=1)], words[np.isfinite(words).all(axis=1)]
-    path = PathChecker(None, profile, STANDOFF, 0.5)  # the kinematics only
-    P, N, R = path.forward(path.normalise(words), MotionRows(path, profile, None).tcp(chunk, rows))
+    poses = PoseMap(profile)
+    P, N, R = poses.forward(poses.normalise(words), poses.tcp(chunk, rows))
     return rows, P + STANDOFF * N, N, R
 
 

@@ -142,10 +142,11 @@ class _ToyEpisode:
         self.is_colliding = np.isin(self.rows, self.colliding)
         self.tcp = np.zeros(levels, dtype=bool)
         self.before_words, self.after_row = self.N0[0].copy(), None
+        self.N_before, self.N_after = self.N0[0].copy(), None
+        self.max_step = 30.0
         self.limits = self.step_limits = np.full(levels, 30.0)
         self.turns = np.tile(np.eye(3), (levels, 1, 1))
         self.path = SimpleNamespace(forward=lambda w, tcp: (None, w / np.linalg.norm(w, axis=1, keepdims=True), None))
-        self.stage = SimpleNamespace(options=SimpleNamespace(max_step=30.0))
 
     def pose_free(self, level, N) -> np.ndarray:
         level, N = np.asarray(level), N / np.linalg.norm(N, axis=1, keepdims=True)

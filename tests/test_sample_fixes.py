@@ -86,17 +86,16 @@ class Program:
     beads each end pose sees (the deposit rule of the settings, ncfix's spacing: pitch / 2)."""
 
     def __init__(self, data: bytes, profile, deposit_codes):
-        from ncfix.collision.path import PathChecker
-        from ncfix.collision.stage import MotionRows
+        from ncfix.kinematics.poses import PoseMap
 
         chunk = Interpreter(profile, "sample", deposit_codes).feed_chunk(data.splitlines(keepends=True), 1)
         rows = np.nonzero(chunk.motion >= 0)[0]
         known = np.isfinite(chunk.words[rows]).all(axis=1)
         self.rows, self.profile = rows[known], profile
-        self.path = PathChecker(None, profile, STANDOFF, PITCH)
-        self.words = self.path.normalise(chunk.words[self.rows])
-        self.tcp = MotionRows(self.path, profile, None).tcp(chunk, self.rows)
-        self.P, self.N, self.R = self.path.forward(self.words, self.tcp)
+        poses = PoseMap(profile)
+        self.words = poses.normalise(chunk.words[self.rows])
+        self.tcp = poses.tcp(chunk, self.rows)
+        self.P, self.N, self.R = poses.forward(self.words, self.tcp)
         self.C = self.P + STANDOFF * self.N
         self.lines = chunk.first_lineno + self.rows
         self.arc = np.isfinite(chunk.arc[self.rows, 0]) if chunk.arc is not None else np.zeros(len(self.rows), bool)

@@ -195,6 +195,11 @@ class DepositRule(Enum):
     OFF = "off (--bead-radius 0)"
 
 
+def rule_text(rule: DepositRule, extrusion_letter: str = "E") -> str:
+    """The rule as the report states it: the extrusion rule names the profile's extrusion word."""
+    return f"extrusion words ({extrusion_letter} grows)" if rule is DepositRule.EXTRUSION else rule.value
+
+
 def choose_rule(e_delta: np.ndarray, deposit_codes_given: bool, bead_radius_mm: float) -> DepositRule:
     """The rule for the whole program, from the first window's extrusion column (see module doc)."""
     if bead_radius_mm <= 0:

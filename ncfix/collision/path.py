@@ -37,6 +37,7 @@ from ncfix.collision.deposit import (LOOP_PROBE, LOOP_RATIO, BeadStore, axial_mo
                                      loop_samples, strand_along)
 from ncfix.collision.plough import ploughing_moves
 from ncfix.geometry.frames import half_turn_direction
+from ncfix.kinematics.poses import PoseMap
 from ncfix.kinematics.tool_vector import ToolVector
 from ncfix.profiles import Profile
 
@@ -96,11 +97,11 @@ class MoveHits:
 
 
 class PathChecker:
-    """Forward kinematics of words and the swept check of runs of moves against parts and beads
-    (``checker`` None: the kinematics only)."""
+    """The swept check of runs of moves against parts and beads; poses come from ``poses``."""
 
-    def __init__(self, checker: Checker | None, profile: Profile, standoff_mm: float, pitch_mm: float) -> None:
+    def __init__(self, checker: Checker, profile: Profile, standoff_mm: float, pitch_mm: float) -> None:
         self.checker = checker
+        self.poses = PoseMap(profile)
         self.kin = profile.kinematics
         self.is_vector = profile.is_vector
         self.standoff_mm = float(standoff_mm)
@@ -108,22 +109,11 @@ class PathChecker:
         self.xyz = [list(self.kin.letters).index(a) for a in "XYZ"]
 
     def normalise(self, words: np.ndarray) -> np.ndarray:
-        if self.is_vector:
-            v = words[:, 3:6]
-            norm = np.linalg.norm(v, axis=1, keepdims=True)
-            words = words.copy()
-            words[:, 3:6] = np.divide(v, norm, out=np.full_like(v, np.nan), where=norm > 0)
-        return words
+        return self.poses.normalise(words)
 
-    def forward(self, words: np.ndarray, tcp: np.ndarray):
+    def forward(self, words: np.ndarray, tcp: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Programmed point P (n, 3), tool vector N (n, 3) and rotation R (n, 3, 3) of words."""
-        n = len(words)
-        P, N, R = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 3))
-        for flag in (False, True):
-            sel = tcp == flag
-            if sel.any():
-                P[sel], N[sel], R[sel] = self.kin.forward(words[sel], tcp=bool(flag))
-        return P, N, R
+        return self.poses.forward(words, tcp)
 
     def check(self, moves: Moves, store: BeadStore, seq0: int, *, commit: bool = True,
               prior: np.ndarray | None = None, clearances: bool = True,

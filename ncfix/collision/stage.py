@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ncfix.collision.checker import Checker
-from ncfix.collision.deposit import BeadStore, choose_rule, depositing
+from ncfix.collision.deposit import BeadStore, choose_rule, depositing, rule_text
 from ncfix.collision.depth import move_poses
 from ncfix.collision.path import MoveHits, Moves, PathChecker
 from ncfix.geometry.mesh import check_part_overlaps
@@ -20,7 +20,7 @@ class MotionRows:
 
     def __init__(self, path: PathChecker, profile, options):
         self.path = path
-        self.tcp_mode = profile.tcp
+        self.extrusion_letter = profile.extrusion_letter
         self.options = options
         self.rule = None
         self.prev_words: np.ndarray | None = None
@@ -29,11 +29,7 @@ class MotionRows:
         self.arcs = 0
 
     def tcp(self, chunk, rows) -> np.ndarray:
-        if self.tcp_mode == "never":
-            return np.zeros(len(rows), dtype=bool)
-        if self.tcp_mode == "always":
-            return np.ones(len(rows), dtype=bool)
-        return chunk.tcp[rows].astype(bool)
+        return self.path.poses.tcp(chunk, rows)
 
     def deposit(self, chunk) -> np.ndarray:
         if self.rule is None:
@@ -62,6 +58,12 @@ class MotionRows:
         keep = known_end
         moves = Moves(w_start[keep], w_end[keep], tcp[keep], known_start[keep], dep[rows][keep], arc[keep])
         return rows[keep], moves
+
+    def rule_text(self) -> str | None:
+        """The deposit rule the program was read with, as the report states it."""
+        if self.rule is None:
+            return None
+        return rule_text(self.rule, self.extrusion_letter)
 
     def warnings(self) -> list[str]:
         out = []
@@ -177,6 +179,5 @@ class CheckStage:
     def flush(self):
         self.report.warnings.extend(self.motion.warnings())
         self.report.summary["checked_samples"] = self.samples
-        rule = self.motion.rule
-        self.report.summary["deposit_rule"] = rule.value if rule else None
+        self.report.summary["deposit_rule"] = self.motion.rule_text()
         return []

@@ -25,10 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ncfix.collision.path import PathChecker
-from ncfix.collision.stage import MotionRows
 from ncfix.correct.graph import DEVIATION_WEIGHT
 from ncfix.geometry.frames import angle_between_deg, turn_rotations
+from ncfix.kinematics.poses import PoseMap, program_poses
 from ncfix.nc.modal import Interpreter
 
 
@@ -76,8 +75,7 @@ def program_vectors(data: bytes, profile, source: str = "<program>") -> tuple[np
     """(lines, N): the 1-based input line and the unit tool vector of every motion block of a
     program whose axes are all known, as ncfix reads it with ``profile`` (a ``Profile``)."""
     chunk = Interpreter(profile, source).feed_chunk(data.splitlines(keepends=True), 1)
-    rows = np.nonzero(chunk.motion >= 0)[0]
-    rows = rows[np.isfinite(chunk.words[rows]).all(axis=1)]
-    path = PathChecker(None, profile, 0.0, 1.0)
-    tcp = MotionRows(path, profile, None).tcp(chunk, rows)
-    return chunk.first_lineno + rows, path.forward(path.normalise(chunk.words[rows]), tcp)[1]
+    found = [poses for _, poses in program_poses([chunk], PoseMap(profile))]
+    if not found:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+    return found[0].lines, found[0].N

@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from ncfix.config import EpaOptions
 from ncfix.correct.epa import VARIANTS, EpaModel, run_tilts
 from ncfix.correct.solve import GraphStrategy, Solution
 from ncfix.errors import ConfigError
@@ -23,7 +24,7 @@ from ncfix.geometry.frames import angle_between_deg, rotation_between, rotation_
 
 # The seed's second method (E recomputed each rotation, Lami's theorem) is the default: it bends
 # around corners where the first E points into a second obstacle (tests/test_epa.py, corner case).
-DEFAULT_VARIANT = "lami"
+DEFAULT_VARIANT = EpaOptions.variant
 # Rounds of "re-check the episode, tilt the failing levels further"; once a solution is kept, the
 # rounds stop when it has not improved for PATIENCE rounds (a re-check of a long episode with
 # beads costs seconds).
@@ -47,23 +48,11 @@ TILTS_IN_STEP = 32
 _MARGIN_DEG = 1e-7
 
 
-def _option(options, name: str, default):
-    """An EPA option: an attribute of ``options`` or an entry of ``options.extra`` (Options has
-    no EPA fields yet), else the default."""
-    value = getattr(options, name, None)
-    if value is None:
-        value = (getattr(options, "extra", None) or {}).get(name)
-    return default if value is None else value
-
-
 class EpaStrategy:
     """GJK/EPA tilts about the tip, ramped within the step limit (module doc).
 
-    options : ``Options`` (max_tilt Θ, max_step θ, resolution) and, read with getattr or from
-        ``options.extra``: ``epa_variant`` ("fixed" | "lami", default "lami"), ``epa_step_deg``
-        (the walk's step, default resolution / 2), ``epa_threshold`` (CoACD concavity, 0.05),
-        ``epa_cache_dir`` (decomposition cache, default ``$NCFIX_CACHE`` or ~/.cache/ncfix),
-        ``epa_graph_fallback`` (True: the graph searches the episodes the walk leaves colliding)
+    options : ``Options``: max_tilt Θ, max_step θ, resolution, and ``options.epa``
+        (``EpaOptions``: the variant, the walk's step, CoACD's threshold and cache, the graph fallback).
     The hull model is built on the first ``solve`` (parts and head of the episode's checker) and
     kept: ``decompose_seconds``, ``cached`` and ``pieces_count`` describe it; ``episodes``,
     ``solve_seconds`` and ``last`` (stats of the last episode) are for benchmarks.
@@ -74,19 +63,20 @@ class EpaStrategy:
     def __init__(self, options):
         self.max_tilt = float(options.max_tilt)
         self.max_step = float(options.max_step)
-        self.variant = str(_option(options, "epa_variant", DEFAULT_VARIANT))
+        epa = options.epa
+        self.variant = str(epa.variant)
         if self.variant not in VARIANTS:
             raise ConfigError(f"unknown EPA variant {self.variant!r}", fix=f"use one of: {', '.join(VARIANTS)}")
-        self.step_deg = float(_option(options, "epa_step_deg", 0.5 * float(options.resolution)))
+        self.step_deg = float(0.5 * float(options.resolution) if epa.step_deg is None else epa.step_deg)
         if not self.step_deg > 0:
-            raise ConfigError(f"epa_step_deg must be above 0, not {self.step_deg:g}")
+            raise ConfigError(f"the EPA walk's step_deg must be above 0, not {self.step_deg:g}")
         # A level failing the re-check is tilted this much further per failure (degrees).
         self.bump_deg = 2.0 * self.step_deg
-        self.threshold = float(_option(options, "epa_threshold", 0.05))
-        self.cache_dir = _option(options, "epa_cache_dir", None)
-        fallback = _option(options, "epa_graph_fallback", True)
+        self.threshold = float(epa.threshold)
+        self.cache_dir = epa.cache_dir
+        fallback = epa.graph_fallback
         if not isinstance(fallback, bool):
-            raise ConfigError(f"epa_graph_fallback has a bad value {fallback!r}", fix="use true or false")
+            raise ConfigError(f"the EPA graph_fallback has a bad value {fallback!r}", fix="use true or false")
         # The orientation graph for the episodes the walk leaves colliding (None: the walk alone).
         self.graph = GraphStrategy(options) if fallback else None
         self.graph_episodes = 0  # episodes the graph searched after the walk
@@ -123,7 +113,7 @@ class EpaStrategy:
 
     def solve(self, ep):
         started = time.perf_counter()
-        solver = _EpisodeSolver(self, self.model_for(ep.checker, ep.stage.report), ep)
+        solver = _EpisodeSolver(self, self.model_for(ep.checker, ep.report), ep)
         solution = solver.run()
         left_by_epa = len(solution.unresolved)
         by_graph = False
@@ -140,7 +130,7 @@ class EpaStrategy:
         self.solve_seconds += seconds
         self.last = {"levels": len(ep.rows), "colliding": int(np.count_nonzero(ep.is_colliding)),
                      "unresolved": len(solution.unresolved), "left_by_epa": left_by_epa, "by_graph": by_graph,
-                     "rounds": solver.rounds, "searches": solver.searches, "tests": int(getattr(ep, "tests", 0)),
+                     "rounds": solver.rounds, "searches": solver.searches, "tests": ep.tests,
                      **solver.settles, "seconds": round(seconds, 4)}
         return solution
 
@@ -164,12 +154,12 @@ class _EpisodeSolver:
         # (the identity where the absolute step is limited).
         n = len(ep.limits)
         turning = np.zeros(L + 1, dtype=bool)
-        turning[:n] = getattr(ep, "turning", np.zeros(n, dtype=bool))
+        turning[:n] = ep.turning
         self._turn = np.tile(np.eye(3), (L + 1, 1, 1))
         if turning.any():
             self._turn[:n][turning[:n]] = ep.turns[turning[:n]]
         limit = np.full(L + 1, 180.0)
-        limit[:n] = np.where(turning[:n], getattr(ep, "step_limits", ep.limits), ep.limits)
+        limit[:n] = np.where(turning[:n], ep.step_limits, ep.limits)
         self._limit_deg = limit
         # Frames: Q_l's z axis is N0_l; carried as the program turns, or by the minimal rotation.
         Q = np.empty((L, 3, 3))
@@ -186,12 +176,10 @@ class _EpisodeSolver:
         self.anchors: dict[int, np.ndarray] = {}
         self.N_before = self.N_after = None
         if ep.before_words is not None and limit[0] < 180.0:
-            self.N_before = ep.path.forward(ep.before_words[None, :], ep.tcp[:1])[1][0]
+            self.N_before = ep.N_before
             self.anchors[-1] = _log(Q[0], self._turn[0] @ self.N_before)
         if ep.after_row is not None and limit[L] < 180.0:
-            r = ep.stage.rows
-            self.N_after = ep.path.forward(r.programmed[ep.after_row][None, :],
-                                           r.tcp[ep.after_row:ep.after_row + 1])[1][0]
+            self.N_after = ep.N_after
             self.anchors[L] = _log(Q[L - 1], self._turn[L].T @ self.N_after)
         # Budgets (radians): optimistic at the limit; ``safe`` holds whatever the offsets do (the
         # frames turn by ``own`` where the absolute step is limited).
@@ -654,8 +642,8 @@ class _EpisodeSolver:
             ep = self.ep
             c = ep.C0[l]
             found = []
-            if ep.stage.store.count:
-                found.extend(ep.stage.store.near(c, self._reach_mm))
+            if ep.store.count:
+                found.extend(ep.store.near(c, self._reach_mm))
             mine = ep.bead_pts[ep.bead_seq <= l]
             found.append(mine[np.linalg.norm(mine - c, axis=1) <= self._reach_mm])
             beads = np.concatenate(found)

@@ -42,7 +42,7 @@ def follow(stage, first: int, last: int) -> None:
     r = stage.rows
     end = min(last + 1, len(r) - 1)
     rows = np.arange(first, end + 1)
-    moves = stage._moves(first, end + 1)
+    moves = stage.moves(first, end + 1)
     known = moves.known_start
     if not known.any():
         return

@@ -37,7 +37,16 @@ class Solution:
 
 
 class Episode:
-    """Levels ``first .. last`` of the stage's row table, with everything a strategy needs."""
+    """Levels ``first .. last`` of the stage's row table: the view a strategy works through.
+
+    What a strategy reads: the levels (``rows``, ``lines``, ``programmed`` words, ``tcp``, the
+    programmed poses ``P0 N0 R0 C0``, which levels are ``colliding``), the poses around them
+    (``before_words`` / ``N_before``: the row before as it will be written; ``N_after``: the row
+    after as programmed), the step rules (``max_step``, ``limits``, ``step_limits``, ``turning``,
+    ``turns``), the material (``store``: laid before the episode; ``bead_pts``/``bead_seq``: the
+    programmed levels' own), and ``report`` for notes. What it calls: ``orient``, ``rotations``,
+    ``free``, ``programmed_free``, ``moves_hit_parts``, ``words_of`` and ``recheck``.
+    """
 
     def __init__(self, stage, first: int, last: int, colliding: np.ndarray):
         r = stage.rows
@@ -59,11 +68,13 @@ class Episode:
         self.C0 = self.P0 + self.h * self.N0
         # The poses before and after: the row before as it will be written, the row after as
         # programmed (it is not part of the episode and must stay reachable within θ).
-        moves = stage._moves(first, first + 1)
+        moves = stage.moves(first, first + 1)
         self.start_known = bool(moves.known_start[0])
         self.before_words = moves.w_start[0] if self.start_known else None
         self.after_row = last + 1 if last + 1 < len(r) else None
-        theta = float(stage.options.max_step)
+        self.store = stage.store
+        self.report = stage.report
+        self.max_step = theta = float(stage.options.max_step)
         # Step limit into each level and into the row after: θ, or the program's own step.
         _, n_before, _ = self.path.forward(self._prev_programmed()[None, :], self.tcp[:1]) if self.start_known \
             else (None, self.N0[:1], None)
@@ -71,6 +82,9 @@ class Episode:
         if self.after_row is not None:
             _, n_after, _ = self.path.forward(r.programmed[self.after_row][None, :], r.tcp[self.after_row:self.after_row + 1])
             chain = np.vstack([chain, n_after])
+        self.N_after = n_after[0] if self.after_row is not None else None
+        self.N_before = self.path.forward(self.before_words[None, :], self.tcp[:1])[1][0] \
+            if self.before_words is not None else None
         own = angle_between_deg(chain[1:], chain[:-1])
         # Where the program itself turns by more than θ between two blocks, ncfix keeps that turn
         # and adds at most θ to it: the step is measured against the previous orientation turned
@@ -107,7 +121,7 @@ class Episode:
         stage = self.stage
         pts, seq = [], []
         for i, row in enumerate(self.rows):
-            moves = stage._moves(int(row), int(row) + 1)
+            moves = stage.moves(int(row), int(row) + 1)
             moves.w_end = self.programmed[i:i + 1]
             if i > 0:
                 moves.w_start = self.programmed[i - 1:i]
@@ -233,7 +247,7 @@ class Episode:
         saved = r.words[self.first:end].copy()
         try:
             r.words[self.first:self.last + 1] = stage.as_printed(self.rows, words)  # checked as written
-            bad = self.checks.check(stage._moves(self.first, end))
+            bad = self.checks.check(stage.moves(self.first, end))
         finally:
             r.words[self.first:end] = saved
         out = bad[:len(self.rows)].copy()
@@ -609,7 +623,7 @@ def blend_episode(ep: Episode, words: np.ndarray, left: np.ndarray) -> np.ndarra
     for _ in range(BLEND_ROUNDS):
         if keep.all():
             return words
-        Nb = blend(ep.N0, N, keep, float(ep.stage.options.max_step), limits_deg=ep.limits[:L])
+        Nb = blend(ep.N0, N, keep, ep.max_step, limits_deg=ep.limits[:L])
         same = np.all(Nb == ep.N0, axis=1)
         out = ep.words_of(Nb, same)
         out[keep] = words[keep]
@@ -635,10 +649,9 @@ def _with_anchors(ep: Episode, cands, allowed):
     start, the first programmed orientation with no step limit) and the row after; with the step
     limits and turns of the graph's levels (``Episode.turns``)."""
     L, K = allowed.shape
-    before = ep.path.forward(ep.before_words[None, :], ep.tcp[:1])[1][0] if ep.before_words is not None else ep.N0[0]
-    if ep.after_row is not None:
-        r = ep.stage.rows
-        after = ep.path.forward(r.programmed[ep.after_row][None, :], r.tcp[ep.after_row:ep.after_row + 1])[1][0]
+    before = ep.N_before if ep.N_before is not None else ep.N0[0]
+    if ep.N_after is not None:
+        after = ep.N_after
         after_limit, after_turn = ep.step_limits[-1], ep.turns[-1]
     else:
         after, after_limit, after_turn = ep.N0[-1], 180.0, np.eye(3)
@@ -656,14 +669,11 @@ def _cone(cands: np.ndarray, ep: Episode, L: int) -> np.ndarray:
     """(L, K) bool: candidates that can be reached from the pose before and can still reach the
     row after, within the steps' limits (spherical triangle inequality)."""
     ok = np.ones(cands.shape[:2], dtype=bool)
-    if ep.before_words is not None:
-        before = ep.path.forward(ep.before_words[None, :], ep.tcp[:1])[1][0]
+    if ep.N_before is not None:
         reach = np.cumsum(ep.limits[:L])
-        ok &= angle_between_deg(cands, before[None, None, :]) <= reach[:, None] + 1e-9
-    if ep.after_row is not None:
-        r = ep.stage.rows
-        after = ep.path.forward(r.programmed[ep.after_row][None, :], r.tcp[ep.after_row:ep.after_row + 1])[1][0]
+        ok &= angle_between_deg(cands, ep.N_before[None, None, :]) <= reach[:, None] + 1e-9
+    if ep.N_after is not None:
         reach = np.cumsum(ep.limits[1:L + 1][::-1])[::-1]
-        ok &= angle_between_deg(cands, after[None, None, :]) <= reach[:, None] + 1e-9
+        ok &= angle_between_deg(cands, ep.N_after[None, None, :]) <= reach[:, None] + 1e-9
     ok[:, 0] = True  # the programmed orientation itself is always a candidate
     return ok

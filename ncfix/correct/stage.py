@@ -271,8 +271,7 @@ class CorrectStage:
         out = self._release(everything=True)
         self.report.warnings.extend(self.motion.warnings())
         self.report.summary["checked_samples"] = self.samples
-        rule = self.motion.rule
-        self.report.summary["deposit_rule"] = rule.value if rule else None
+        self.report.summary["deposit_rule"] = self.motion.rule_text()
         return out
 
     # -- bookkeeping ---------------------------------------------------------------------------
@@ -299,7 +298,7 @@ class CorrectStage:
         its first check takes what detection found for them."""
         return Rechecks(self, rows)
 
-    def _moves(self, a: int, b: int) -> Moves:
+    def moves(self, a: int, b: int) -> Moves:
         """Rows a..b-1 as moves from their current (possibly corrected) predecessors."""
         r = self.rows
         start = np.empty_like(r.words[a:b])
@@ -311,7 +310,7 @@ class CorrectStage:
         """Rows final .. b-1 become final: their beads go into the store."""
         if b <= self.final:
             return
-        moves = self._moves(self.final, b)
+        moves = self.moves(self.final, b)
         if self.checker.bead_radius_mm > 0 and moves.deposit.any():  # no kinematics for no beads
             self.store.add(*self.path.bead_points(moves, radii=True))
         self._trace(self.final, b)
@@ -368,7 +367,7 @@ class CorrectStage:
                 entries = self._collision_entries(colliding[colliding <= e], hits)
                 self._commit(first)
                 upto = min(n, last + 2)  # the row after the episode starts at its last level
-                before = self._moves(first, upto)
+                before = self.moves(first, upto)
                 before.w_end = before.w_end.copy()  # a view of the table, which _apply rewrites
                 self._solve(first, last, entries)
                 self._forget(before, first, upto)
@@ -379,7 +378,7 @@ class CorrectStage:
         """Detection of rows a..b-1: the rows whose result cannot be reused are checked (runs of
         them, each with the pending beads of the rows a.. before it), the others keep theirs."""
         if not self.REUSE_DETECTION:
-            hits, _ = self.path.check(self._moves(a, b), self.store, 0, commit=False)
+            hits, _ = self.path.check(self.moves(a, b), self.store, 0, commit=False)
             self.samples += hits.samples
             self.checked_rows += b - a
             self._remember(a, b, hits)  # the poses, for ``_forget``'s note of moved beads
@@ -388,7 +387,7 @@ class CorrectStage:
         if self.store.retired != self.retired_seen:  # the beads every row sees changed
             d.valid[:] = False
             self.retired_seen = self.store.retired
-        moves = self._moves(a, b)
+        moves = self.moves(a, b)
         ok = d.valid[a:b] & _same(d.start[a:b], moves.w_start) & _same(d.end[a:b], moves.w_end)
         d.valid[a:b] = ok
         prior, covered = [], a  # pending beads of rows a .. covered-1
@@ -397,10 +396,10 @@ class CorrectStage:
             s, e = a + s, a + e
             if s > covered:
                 if self.checker.bead_radius_mm > 0:
-                    prior.append(self.path.bead_points(self._moves(covered, s), radii=True))
+                    prior.append(self.path.bead_points(self.moves(covered, s), radii=True))
                 covered = s
             pts = join_beads(prior, self.checker.bead_radius_mm) if prior else None
-            hits, _ = self.path.check(self._moves(s, e), self.store, 0, commit=False, prior=pts,
+            hits, _ = self.path.check(self.moves(s, e), self.store, 0, commit=False, prior=pts,
                                       progress=self._detecting(s, e))
             samples += hits.samples
             self.checked_rows += e - s
@@ -422,7 +421,7 @@ class CorrectStage:
     def _remember(self, a: int, b: int, hits: MoveHits) -> None:
         """Keep the detection of rows a..b-1 (``hits``, from a check of exactly these moves)."""
         d = self.detected
-        moves = self._moves(a, b)
+        moves = self.moves(a, b)
         rows = np.arange(a, b)
         d.start[rows], d.end[rows] = moves.w_start, moves.w_end
         d.part_hit[rows], d.deposit_hit[rows] = hits.part_hit, hits.deposit_hit
@@ -441,7 +440,7 @@ class CorrectStage:
         """After an episode rewrote rows of first..end-1: forget the detection of the rows whose
         head came within their reach (``reach_mm``) of a bead of a changed move, as laid before
         or after the change (the changed moves themselves have other words now: checked again)."""
-        after = self._moves(first, end)
+        after = self.moves(first, end)
         changed = ~(_same(before.w_start, after.w_start) & _same(before.w_end, after.w_end))
         if not changed.any() or not after.deposit[changed].any() or self.head_corners is None:
             return
@@ -503,7 +502,7 @@ class CorrectStage:
                 entry["outcome"] = "tilted"
             else:
                 entry["outcome"] = "freed"
-                before = self._moves(row, row + 1).w_start
+                before = self.moves(row, row + 1).w_start
                 programmed = r.programmed[row - 1:row] if row > 0 else self.prev_programmed
                 if row > 0 and programmed is not None and not _same(before, np.reshape(programmed, (1, -1)))[0]:
                     entry["note"] = (f"left as programmed: its move now starts from line {int(r.line[row - 1])} "
@@ -520,7 +519,7 @@ class CorrectStage:
         tip pivot moves a re-oriented block's programmed point, and its beads with it)."""
         r = self.rows
         line = int(r.line[row])
-        before = self._moves(row, row + 1).w_start
+        before = self.moves(row, row + 1).w_start
         programmed = r.programmed[row - 1:row] if row > 0 else (
             None if self.prev_programmed is None else self.prev_programmed[None])
         if programmed is not None and not _same(before, programmed)[0]:
@@ -608,7 +607,7 @@ class CorrectStage:
         P0, N0, R0 = self.path.forward(r.programmed[rows], r.tcp[rows])
         P1, N1, R1 = self.path.forward(words, r.tcp[rows])
         tilt = angle_between_deg(N1, N0)
-        start = self._moves(first, first + 1).w_start
+        start = self.moves(first, first + 1).w_start
         # The program's first motion block has no block before it: its step is 0.
         before = self.path.forward(start, r.tcp[rows[:1]])[1] if np.isfinite(start).all() else N1[:1]
         prev = np.vstack([before, N1[:-1]])
