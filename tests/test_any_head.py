@@ -89,9 +89,10 @@ def wall_sample(head: trimesh.Trimesh, folder: Path) -> tuple[Path, Path]:
     return program, write_stl(wall, folder / "wall.stl")
 
 
-def pocket_sample(head: trimesh.Trimesh, folder: Path) -> tuple[Path, Path]:
+def pocket_sample(head: trimesh.Trimesh, folder: Path, step_mm: float = STEP_MM) -> tuple[Path, Path]:
     """Along the floor of a pocket: +X beside its +Y wall into the corner, then -Y beside its +X
-    wall; both walls 2 mm inside the head's reach toward them, the other walls clear of it."""
+    wall, points ``step_mm`` apart; both walls 2 mm inside the head's reach toward them, the other
+    walls clear of it."""
     import manifold3d
 
     fy, fx = _reach(head, (0, 1, 0)) - PENETRATION_MM, _reach(head, (1, 0, 0)) - PENETRATION_MM
@@ -105,7 +106,7 @@ def pocket_sample(head: trimesh.Trimesh, folder: Path) -> tuple[Path, Path]:
 
     cut = (solid(block) - solid(hole)).to_mesh64()
     pocket = trimesh.Trimesh(np.asarray(cut.vert_properties[:, :3]), np.asarray(cut.tri_verts, dtype=np.int64))
-    s = np.arange(-40.0, 1e-9, STEP_MM)
+    s = np.arange(-40.0, 1e-9, step_mm)
     points = [(x, 0.0, 0.0) for x in s] + [(0.0, y, 0.0) for y in s[-2::-1]]
     program = folder / "pocket.nc"
     program.write_bytes(_program(points, "pocket sample"))
@@ -158,12 +159,18 @@ def run_cell(head_name: str, sample: str, strategy: str, folder: Path) -> dict:
     assert not unresolved, f"left colliding: lines {sorted(unresolved)}"
     output = folder / f"out-{sample}-{strategy}.nc"
     output.write_bytes(out.getvalue())
-    parts = {part.name: trimesh.load(part)}
-    ends = label_program(str(output), "ijk", head, parts, standoff_mm=STANDOFF, deposit_codes=("M3", "M5"))
-    assert not ends, f"the exact reference finds the output's end poses colliding: {ends}"
-    sweeps = _sweep_hits(out.getvalue(), ExactReference(head, parts))
+    ends, sweeps = exact_collisions(output, head, {part.name: trimesh.load(part)})
+    assert not ends, f"the exact reference finds the output's end poses colliding: lines {sorted(ends)}"
     assert not sweeps, f"the exact reference finds the output's moves colliding: lines {sorted(sweeps)}"
     return {"found": found, "unresolved": len(unresolved), "seconds": seconds}
+
+
+def exact_collisions(program: Path, head: trimesh.Trimesh, parts: dict) -> tuple[set[int], set[int]]:
+    """The exact reference's answer on a program of the matrix (bench/run times it on a fix's
+    output): the lines whose end pose collides (parts and the beads laid before it), and the
+    lines whose move meets a part along the way."""
+    ends = label_program(str(program), "ijk", head, parts, standoff_mm=STANDOFF, deposit_codes=("M3", "M5"))
+    return {line for line, _ in ends}, _sweep_hits(program.read_bytes(), ExactReference(head, parts))
 
 
 CELLS = [pytest.param(head, sample, strategy,

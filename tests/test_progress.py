@@ -97,3 +97,28 @@ def test_progress_moves_between_the_episodes_of_a_fix(scene, monkeypatch):
     between = [e for e in events[solves[0]:solves[-1]] if e != "solve"]
     assert between and max(between) < _program().count(b"\n")  # it moved while episodes were left to fix
     assert any(e != "solve" for e in events[:solves[0]])  # and during detection, before the first fix
+
+
+def test_a_first_decomposition_says_so_before_it_starts(tmp_path, monkeypatch, caplog):
+    """The epa strategy's CoACD decomposition of a part it has not seen is named on the
+    ``ncfix.build`` log (the command line's standard error, piped or not) before CoACD runs;
+    read back from the cache, it is not."""
+    import ncfix.correct.decompose as decompose_module
+
+    monkeypatch.setenv("NCFIX_CACHE", str(tmp_path / "cold"))
+    notice = "building the CoACD decomposition of block.stl (first run for this mesh)"
+    seen_before_run = []
+    original = decompose_module._run_coacd
+
+    def running(mesh, threshold):
+        seen_before_run.append(notice in caplog.text)
+        return original(mesh, threshold)
+
+    monkeypatch.setattr(decompose_module, "_run_coacd", running)
+    block = trimesh.creation.box(extents=(10.0, 10.0, 10.0))
+    with caplog.at_level("WARNING", logger="ncfix.build"):
+        first = decompose_module.decompose(block, name="part:block.stl")
+        assert seen_before_run == [True] and not first.cached
+        caplog.clear()
+        assert decompose_module.decompose(block, name="part:block.stl").cached
+    assert "building" not in caplog.text
