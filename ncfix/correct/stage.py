@@ -269,10 +269,8 @@ class CorrectStage:
     def flush(self):
         self._advance(end=True)
         out = self._release(everything=True)
-        self.report.warnings.extend(self.motion.warnings())
         self.report.summary["checked_samples"] = self.samples
-        rule = self.motion.rule
-        self.report.summary["deposit_rule"] = rule.value if rule else None
+        self.motion.report_into(self.report)
         return out
 
     # -- bookkeeping ---------------------------------------------------------------------------
