@@ -142,3 +142,7 @@ def test_the_option_is_checked_and_read_from_the_config(tmp_path):
     config.write_text("[ncfix]\nfilament_diameter = 1.75\nbead_width = 0.5\nbead_height = 0.3\n")
     report = run(layers(0.5, 0.3), config=config)
     assert report.summary["implied_bead"]["filament_diameter_mm"] == 1.75
+    # with a part (read once before the run for its box), measured once: the same figures
+    mold = str(HEAD.parent / "recreated_mold.stl")
+    with_part = run(layers(0.5, 0.3), config=config, part=[mold]).summary["implied_bead"]
+    assert with_part == report.summary["implied_bead"]

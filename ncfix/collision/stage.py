@@ -31,7 +31,7 @@ class MotionRows:
         self.unchecked = 0
         self.arcs = 0
         self.implied = None
-        if getattr(options, "filament_diameter", None) is not None:
+        if getattr(options, "filament_diameter", None) is not None and path.checker is not None:
             shape = path.checker.bead_shape if path.checker.bead_radius_mm > 0 else None
             self.implied = ImpliedBead(options.filament_diameter, shape.width_mm if shape else 0.0,
                                        shape.height_mm if shape else 0.0)
