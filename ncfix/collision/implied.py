@@ -6,8 +6,8 @@ implies"). Reported next to the stated bead; it never changes the deposit model.
   not plunges or lifts: ``deposit.axial_moves``), E / the programmed length of the move (P's
   straight path), each move weighted by its length: the median and the 95th percentile of the
   deposited path.
-- **Layer height**: at the end point P of each printing move (at most QUERIES_PER_WINDOW a
-  window), the drop along the tool axis N to the nearest path laid before below it: the smallest
+- **Layer height**: at the end point P of every QUERY_EVERY-th printing move of the program (the
+  same moves whatever the batches they come in: a check and a fix measure alike), the drop along the tool axis N to the nearest path laid before below it: the smallest
   (P − Q)·N over the deposited path points Q (printing moves sampled at most SPACING_MM apart) in
   the cone of half-angle CONE_DEG about −N below P, within SEARCH_MM. A point of the tip's own
   surface (its own line, its neighbours in the layer) lies across the axis, outside the cone; the
@@ -37,7 +37,7 @@ CONE_DEG = 60.0
 SEARCH_MM = 4.0
 # Drops closer than this (mm) are the tip's own surface (its own sample, rounding).
 OWN_SURFACE_MM = 1e-3
-QUERIES_PER_WINDOW = 512
+QUERY_EVERY = 4
 POINTS_MAX = 1 << 18
 LEVEL_MAX = POINTS_MAX // 4
 # E per mm histogram: log-spaced, 0.1% wide bins from 1e-6 to 1e3 (program E units per mm).
@@ -80,6 +80,7 @@ class ImpliedBead:
         self.rates = np.zeros(len(RATE_BINS) - 1)
         self.heights = np.zeros(len(HEIGHT_BINS) - 1, dtype=np.int64)
         self.printing_mm = 0.0
+        self.moves = 0  # printing moves seen
         self.below_range = 0.0  # path length of moves whose E per mm is outside RATE_BINS
         self._levels: list[tuple[np.ndarray, cKDTree]] = []
         self._open: list[np.ndarray] = []
@@ -108,8 +109,10 @@ class ImpliedBead:
         counts, t = bead_samples(ps, pe, SPACING_MM, length_mm=lng)
         own = np.repeat(np.arange(len(ps)), counts)
         laid = ps[own] + t[:, None] * (pe - ps)[own]
-        pick = np.unique(np.linspace(0, len(pe) - 1, min(len(pe), QUERIES_PER_WINDOW)).round().astype(np.int64))
-        self._heights(pe[pick], ne[pick], laid, own, pick)
+        pick = np.nonzero((self.moves + np.arange(len(pe))) % QUERY_EVERY == 0)[0]
+        self.moves += len(pe)
+        if len(pick):
+            self._heights(pe[pick], ne[pick], laid, own, pick)
         self._add(laid)
 
     def _add(self, pts: np.ndarray) -> None:
