@@ -59,6 +59,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--bead-radius", metavar="MM", help="radius of deposited material; 0 turns the deposit model off (default 1)")
     p.add_argument("--bead-width", metavar="MM", help="a flat bead's width across the tool axis (with --bead-height; overrides the radius)")
     p.add_argument("--bead-height", metavar="MM", help="a flat bead's height along the tool axis, hanging below the nozzle tip")
+    p.add_argument("--filament-diameter", metavar="MM", help="diameter of the filament the E words feed: the report "
+                   "gives the bead width the program's E per mm implies (never used as the bead)")
     p.add_argument("--tip-allowance", metavar="MM", help="bottom of the head not checked against deposit (default 1)")
     p.add_argument("--deposit-codes", metavar="ON,OFF", help="M-codes that switch deposition on and off, e.g. M3,M5")
     p.add_argument("--window", metavar="BLOCKS", help="motion blocks per checking window (default 2000)")

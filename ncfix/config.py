@@ -50,6 +50,7 @@ class Options:
     bead_radius: float = 1.0
     bead_width: float | None = None
     bead_height: float | None = None
+    filament_diameter: float | None = None
     tip_allowance: float = 1.0
     deposit_codes: tuple[str, str] | None = None
     check: bool = False
@@ -229,7 +230,7 @@ def _convert(key: str, value: Any, source: str, config_path: str) -> Any:
             low = f"from {lo:g}" if lo_ok else f"above {lo:g}"
             raise bad(f"give a number {low} up to {hi:g}")
         return number
-    if key in ("bead_width", "bead_height"):
+    if key in ("bead_width", "bead_height", "filament_diameter"):
         try:
             number = float(value)
         except (TypeError, ValueError):

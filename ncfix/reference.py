@@ -27,8 +27,8 @@ import coal
 import numpy as np
 import trimesh
 
-from ncfix.collision.deposit import (LOOP_PROBE, LOOP_RATIO, BeadShape, axial_moves, held_radius, loop_samples,
-                                     strand_along)
+from ncfix.collision.deposit import (LOOP_PROBE, LOOP_RATIO, LOOP_SPACING_MIN, BeadShape, axial_moves, held_radius,
+                                     loop_samples, strand_along, strand_at_rest)
 from ncfix.collision.exact import ExactParts, bvh, clip_head
 from ncfix.collision.plough import ploughing_moves
 from ncfix.geometry.distance import point_mesh_distance, winding_numbers
@@ -247,9 +247,14 @@ def label_program(
                         w = words[row - 1][None] + tb[:, None] * (words[row] - words[row - 1])[None]
                         pb, nb, _ = profile.kinematics.forward(w, tcp=bool(tcp[row]))
                         thin = pb - drop * nb
-                        held = held_radius(strand, thin, bead_radius_mm)
-                        if held < bead_radius_mm:
-                            laid, rad = thin, np.full(len(thin), held)
+                        if held_radius(strand, thin, bead_radius_mm) < bead_radius_mm:
+                            up = profile.kinematics.vertical(0.5 * (words[row - 1] + words[row]))
+                            step = min(bead_spacing_mm, max(strand, LOOP_SPACING_MIN * bead_spacing_mm))
+                            lowered, taut = strand_at_rest(thin, up[0], step)
+                            rest = np.concatenate([lowered, taut])
+                            held = max(held_radius(strand, lowered, bead_radius_mm),
+                                       held_radius(strand, taut, bead_radius_mm))
+                            laid, rad = rest, np.full(len(rest), held)
             beads = np.vstack([beads, laid])
             radii = np.concatenate([radii, rad])
         previous = p[row]

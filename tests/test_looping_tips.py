@@ -96,13 +96,33 @@ def test_a_looping_tip_lays_a_thinner_strand_by_the_ratio_of_lengths():
     assert np.all(flip_r >= strand * (1 - 1e-3))
     assert np.all(flip_r <= math.hypot(strand, 0.5 * step) * (1 + 1e-2))
     assert np.all(flip_r < 0.5 * bead.radius_mm)
-    # along the tip's whole path, top at the tip: the centre a strand radius below it
-    gaps = np.linalg.norm(np.diff(flip_beads, axis=0), axis=1)
-    assert gaps.max() <= step * 1.05
-    assert gaps.sum() >= 0.95 * real
+    # the path's beads first, from one end of the move to the other, top at the tip (the centre a
+    # strand radius below it), then the straight line between the ends (deposit.strand_at_rest)
     P, N, _ = path.forward(np.stack([flip.w_start[0], flip.w_end[0]]), np.zeros(2, dtype=bool))
-    np.testing.assert_allclose(flip_beads[0], P[0] - strand * N[0], atol=1e-3)
-    np.testing.assert_allclose(flip_beads[-1], P[1] - strand * N[1], atol=1e-3)
+    a, b = P[0] - strand * N[0], P[1] - strand * N[1]
+    np.testing.assert_allclose(flip_beads[0], a, atol=1e-3)
+    end = int(np.argmin(np.linalg.norm(flip_beads - b, axis=1)))
+    np.testing.assert_allclose(flip_beads[end], b, atol=1e-3)
+    along, taut = flip_beads[:end + 1], flip_beads[end + 1:]
+    assert np.linalg.norm(np.diff(along, axis=0), axis=1).max() <= step * 1.05
+    np.testing.assert_allclose(taut[0], along[0], atol=1e-12)  # from one end to the other
+    np.testing.assert_allclose(taut[-1], along[-1], atol=1e-12)
+    assert np.linalg.norm(np.diff(taut, axis=0), axis=1).max() <= step * 1.05
+    # at rest: nothing above the higher of its ends along the machine's vertical (the part
+    # frame's vertical at the middle of the move, B 3°, C 45°: the tool axis there, on this
+    # table-table machine); below that level, where the tip drew it
+    _, mid, _ = path.forward(0.5 * (flip.w_start + flip.w_end), np.zeros(1, dtype=bool))
+    up = mid[0]
+    level = max(along[0] @ up, along[-1] @ up)
+    assert (flip_beads @ up).max() <= level + 1e-9
+    t = np.linspace(0.0, 1.0, 4001)
+    w = flip.w_start[0] + t[:, None] * (flip.w_end[0] - flip.w_start[0])
+    tip, axis, _ = path.forward(w, np.zeros(len(t), dtype=bool))
+    drawn = tip - strand * axis
+    assert (drawn @ up).max() > level + 0.01  # the loop rises above its ends: the rule lowers it
+    rest = drawn - np.maximum(drawn @ up - level, 0.0)[:, None] * up
+    near = np.min(np.linalg.norm(rest[:, None] - along[None], axis=2), axis=1)
+    assert near.max() <= 0.5 * step * 1.05 + 1e-3  # the lowered path, beads along it
 
 
 def test_straight_moves_keep_the_stated_bead():

@@ -146,8 +146,6 @@ def test_a_travel_through_the_printed_part_and_a_tilted_stretch_are_flagged_at_t
 
 
 @pytest.mark.heavy
-@pytest.mark.xfail(strict=True, reason="the loops' strands are laid on the tip's path, where the nozzle of a later "
-                                       "block passes (docs/deposit.md 'Real prints')")
 @pytest.mark.parametrize("head", ["extruderHead_converted.stl", "extruderHead_original_converted.stl"])
 def test_the_whole_program_flags_nothing_with_either_head(head):
     """The program printed: the recipe flags none of its blocks, with either of its heads."""

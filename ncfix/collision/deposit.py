@@ -15,8 +15,9 @@ lays its material at its lower end only: what leaves the nozzle while it runs al
 ends under it, not in a column along the move. The checker holds each bead as a sphere
 (``BeadShape.radius_mm``) that contains the stated bead; a move whose tip loops (TCP off: its
 path LOOP_RATIO times the programmed one or longer) spreads its material along that path as a
-thinner strand (``strand_along``, ``BeadShape.strand``), whose beads the exact test holds at their
-own, smaller radius (every bound and field keeps the stated one).
+thinner strand (``strand_along``, ``BeadShape.strand``) where it comes to rest (``strand_at_rest``),
+whose beads the exact test holds at their own, smaller radius (every bound and field keeps the
+stated one).
 
 ``BeadStore`` keeps them twice:
 
@@ -178,6 +179,26 @@ def strand_along(path_mm: np.ndarray, t: np.ndarray, programmed_mm: float, shape
     tb = np.interp(np.linspace(0.0, length, count), cum, t)
     tb[0], tb[-1] = 0.0, 1.0
     return tb, float(r), float(drop)
+
+
+def strand_at_rest(beads_mm: np.ndarray, up: np.ndarray, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where a looping move's strand, drawn along the tip's path (beads (q, 3), its two ends
+    first and last), comes to rest (deposit.md, "Looping tips"): (the path's beads lowered,
+    (q, 3); the straight line between the ends, beads at most ``spacing_mm`` apart (c, 3)).
+
+    A thin strand drawn through the air does not stay up there: it is anchored where it sticks,
+    at the move's two ends, and between them it is pulled taut along the straight line between
+    them or sags under its own weight, below the place it was drawn. Either way it lies no higher
+    along the machine's vertical ``up`` (3,) (a unit vector in the part frame, at the middle of
+    the move) than the higher of its ends: the path's beads above that level are lowered to it."""
+    beads = np.asarray(beads_mm, dtype=np.float64)
+    u = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    top = float(max(beads[0] @ u, beads[-1] @ u))
+    lowered = beads - np.maximum(beads @ u - top, 0.0)[:, None] * u
+    span = float(np.linalg.norm(beads[-1] - beads[0]))
+    count = int(np.ceil(span / spacing_mm - 1e-9)) + 1 if span > 0 else 1
+    s = np.linspace(0.0, 1.0, count)[:, None]
+    return lowered, beads[0] + s * (beads[-1] - beads[0])
 
 
 def held_radius(strand_mm: float, beads_mm: np.ndarray, radius_mm: float) -> float:

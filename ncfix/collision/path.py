@@ -20,9 +20,9 @@ Beads of depositing moves are laid from the move's start to its end point (along
 arcs), at most half a pitch apart, each ``Checker.bead_drop_mm`` below P along the tool axis
 there (``deposit.BeadShape``); a plunge or lift (``deposit.axial_moves``) lays one bead, at its
 lower end; a move whose tip path is LOOP_RATIO times its programmed length or longer (TCP off)
-lays a thinner strand along that path, each of its beads with its own radius
-(``_looping_beads``). A bead exists from the first sample at or after its place on the move
-(sequence numbers).
+lays a thinner strand along that path, where it comes to rest, each of its beads with its own
+radius (``_looping_beads``). A bead exists from the first sample at or after its place on the move
+(sequence numbers); the strand's straight line between the move's ends, from the move's end.
 """
 
 from __future__ import annotations
@@ -33,8 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ncfix.collision.checker import Checker, rotation_angle
-from ncfix.collision.deposit import (LOOP_PROBE, LOOP_RATIO, BeadStore, axial_moves, bead_samples, held_radius,
-                                     loop_samples, strand_along)
+from ncfix.collision.deposit import (LOOP_PROBE, LOOP_RATIO, LOOP_SPACING_MIN, BeadStore, axial_moves, bead_samples, held_radius,
+                                     loop_samples, strand_along, strand_at_rest)
 from ncfix.collision.plough import ploughing_moves
 from ncfix.geometry.frames import half_turn_direction
 from ncfix.kinematics.poses import PoseMap
@@ -331,8 +331,9 @@ class PathChecker:
         {row: (beads (q, 3), sequence numbers (q,), radii (q,))}. The move's material is spread
         along the longer path: a strand of (programmed length / tip path length) times the stated
         section (``BeadShape.strand``), laid along the tip's path at most min(pitch/2, its radius)
-        apart, each held as a sphere covering the strand out to the next bead (deposit.md,
-        "Looping tips"). The tip path's length is that of a polyline through points on it (never
+        apart, each held as a sphere covering the strand out to the next bead, where it comes to
+        rest (``deposit.strand_at_rest``: no higher than the move's ends along the machine's
+        vertical, and along the straight line between them) (deposit.md, "Looping tips"). The tip path's length is that of a polyline through points on it (never
         longer than the path: the strand is never made thinner than the rule says)."""
         ck = self.checker
         shape = getattr(ck, "bead_shape", None)
@@ -353,12 +354,17 @@ class PathChecker:
             bw = self._along(moves, ws, moves.w_end, row_b, tb, np.zeros(len(moves), dtype=bool))
             pb, nb, _ = self.forward(self.normalise(bw), moves.tcp[row_b])
             beads = pb - drop * nb
-            held = held_radius(r, beads, ck.bead_radius_mm)
-            if held >= ck.bead_radius_mm:  # no thinner than the stated bead: laid as it is
+            if held_radius(r, beads, ck.bead_radius_mm) >= ck.bead_radius_mm:  # laid as the stated bead
                 continue
-            count = len(tb)
+            middle = self._along(moves, ws, moves.w_end, np.array([row]), np.array([0.5]),
+                                 np.zeros(len(moves), dtype=bool))
+            step = min(0.5 * self.pitch_mm, max(r, LOOP_SPACING_MIN * 0.5 * self.pitch_mm))
+            lowered, taut = strand_at_rest(beads, self.kin.vertical(self.normalise(middle))[0], step)
+            beads = np.concatenate([lowered, taut])
+            held = max(held_radius(r, lowered, ck.bead_radius_mm), held_radius(r, taut, ck.bead_radius_mm))
             kb = np.maximum(np.ceil(tb * m[row] - 1e-9), 1).astype(np.int64)
-            out[int(row)] = (beads, seq0 + first[row] + kb - 1, np.full(count, held))
+            kb = np.concatenate([kb, np.full(len(taut), m[row])])  # pulled taut: at the move's end
+            out[int(row)] = (beads, seq0 + first[row] + kb - 1, np.full(len(beads), held))
         return out
 
     def _with_loops(self, pend, pend_seq, di, counts, loops: dict):

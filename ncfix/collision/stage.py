@@ -9,14 +9,17 @@ from __future__ import annotations
 import numpy as np
 
 from ncfix.collision.checker import Checker
-from ncfix.collision.deposit import BeadStore, choose_rule, depositing, rule_text
+from ncfix.collision.deposit import BeadStore, DepositRule, choose_rule, depositing, rule_text
 from ncfix.collision.depth import move_poses
+from ncfix.collision.implied import ImpliedBead
 from ncfix.collision.path import MoveHits, Moves, PathChecker
 from ncfix.geometry.mesh import check_part_overlaps
 
 
 class MotionRows:
-    """Turns chunks into runs of moves: carries the previous motion block's words across chunks."""
+    """Turns chunks into runs of moves: carries the previous motion block's words across chunks.
+    With --filament-diameter it also measures the bead the program's extrusion implies, on the
+    moves as programmed (``implied.ImpliedBead``)."""
 
     def __init__(self, path: PathChecker, profile, options):
         self.path = path
@@ -27,6 +30,11 @@ class MotionRows:
         self.prev_tcp = False
         self.unchecked = 0
         self.arcs = 0
+        self.implied = None
+        if getattr(options, "filament_diameter", None) is not None and path.checker is not None:
+            shape = path.checker.bead_shape if path.checker.bead_radius_mm > 0 else None
+            self.implied = ImpliedBead(options.filament_diameter, shape.width_mm if shape else 0.0,
+                                       shape.height_mm if shape else 0.0)
 
     def tcp(self, chunk, rows) -> np.ndarray:
         return self.path.poses.tcp(chunk, rows)
@@ -57,6 +65,9 @@ class MotionRows:
         self.unchecked += int((~known_end).sum())
         keep = known_end
         moves = Moves(w_start[keep], w_end[keep], tcp[keep], known_start[keep], dep[rows][keep], arc[keep])
+        if self.implied is not None and self.rule is DepositRule.EXTRUSION:
+            inch = chunk.inch[rows[keep]].astype(bool)  # E in the program's unit, as the path: mm
+            self._observe(moves, np.where(inch, 25.4, 1.0) * chunk.e_delta[rows[keep]])
         return rows[keep], moves
 
     def rule_text(self) -> str | None:
@@ -64,6 +75,25 @@ class MotionRows:
         if self.rule is None:
             return None
         return rule_text(self.rule, self.extrusion_letter)
+
+    def _observe(self, moves: Moves, e_delta: np.ndarray) -> None:
+        """The programmed straight depositing moves with a known start, for ``ImpliedBead``."""
+        sel = moves.deposit & moves.known_start & np.isnan(moves.arc[:, 0])
+        sel &= np.isfinite(moves.w_start).all(axis=1) & (moves.arc[:, 3] != -1.0)
+        if not sel.any():
+            return
+        Ps, Ns, _ = self.path.forward(moves.w_start[sel], moves.tcp[sel])
+        Pe, Ne, _ = self.path.forward(moves.w_end[sel], moves.tcp[sel])
+        self.implied.observe(Ps, Pe, Ns, Ne, e_delta[sel], np.ones(len(Ps), dtype=bool))
+
+    def report_into(self, report) -> None:
+        """The run's warnings, the deposit rule and the implied bead (with --filament-diameter)."""
+        report.warnings.extend(self.warnings())
+        report.summary["deposit_rule"] = self.rule_text()
+        if self.implied is not None:
+            report.summary["implied_bead"] = self.implied.summary()
+            report.notes.append(self.implied.line())
+            report.warnings.extend(self.implied.warnings())
 
     def warnings(self) -> list[str]:
         out = []
@@ -177,7 +207,6 @@ class CheckStage:
         return [chunk]
 
     def flush(self):
-        self.report.warnings.extend(self.motion.warnings())
         self.report.summary["checked_samples"] = self.samples
-        self.report.summary["deposit_rule"] = self.motion.rule_text()
+        self.motion.report_into(self.report)
         return []

@@ -269,9 +269,8 @@ class CorrectStage:
     def flush(self):
         self._advance(end=True)
         out = self._release(everything=True)
-        self.report.warnings.extend(self.motion.warnings())
         self.report.summary["checked_samples"] = self.samples
-        self.report.summary["deposit_rule"] = self.motion.rule_text()
+        self.motion.report_into(self.report)
         return out
 
     # -- bookkeeping ---------------------------------------------------------------------------

@@ -54,6 +54,15 @@ class TwoAxisChain:
         phi2 = np.radians(words[:, 4]) * self._s[1]
         return axis_rotation(self._u[0], phi1), axis_rotation(self._u[1], phi2)
 
+    def vertical(self, words: np.ndarray) -> np.ndarray:
+        """The machine's +Z (up) seen in the part frame at the words (n, 5): (n, 3) unit vectors
+        (the tables turn the part under it; the head's rotations do not change it)."""
+        words = np.asarray(words, dtype=np.float64).reshape(-1, 5)
+        r1, r2 = self.rotations(words)
+        zero = np.zeros((len(words), 3))
+        up = self.transform.to_workpiece(zero + [0.0, 0.0, 1.0], r1, r2) - self.transform.to_workpiece(zero, r1, r2)
+        return up / np.linalg.norm(up, axis=1, keepdims=True)
+
     def forward(self, words: np.ndarray, tcp: bool = True):
         words = np.asarray(words, dtype=np.float64).reshape(-1, 5)
         r1, r2 = self.rotations(words)
