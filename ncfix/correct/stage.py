@@ -102,7 +102,7 @@ class Rechecks:
     """The re-checks of one episode's moves with the words a strategy proposes (``Episode.recheck``).
 
     Each re-check reuses the last one's result of a move where nothing that result depends on
-    changed (module doc): its own words, and the beads within its reach. A move before the first
+    changed (``CorrectStage``): its own words, and the beads within its reach. A move before the first
     changed one keeps its result (it does not see later beads); a later unchanged move keeps it
     unless its head came within reach (``reach_mm``) of a bead of a changed move, as laid before
     or after the change. The rest are checked, in runs, each with the beads of the moves before
@@ -216,7 +216,7 @@ class CorrectStage:
     one episode reuse each other's results by the same rule (``Rechecks``).
     """
 
-    # Reuse detection results where nothing they depend on changed (module doc); False checks
+    # Reuse detection results where nothing they depend on changed (the class doc); False checks
     # every row again at every detection (the reference the reuse is tested against).
     REUSE_DETECTION = True
 
