@@ -1,29 +1,10 @@
 """Arrays derived from the meshes, kept on disk between runs: one ``.npz`` per result.
 
-Building the checker's models from the head and part meshes (voxelizing, the distance transform,
-the covering balls and their trees, the clipped head's cell lists and sign grid, the head's
-triangle tree and each part's cell lists for the exact part test, the CoACD pieces) takes
-seconds and gives the same arrays for the same meshes and settings every time. They are stored under ``$NCFIX_CACHE`` (default
-``~/.cache/ncfix``) in files named ``KIND-KEY.npz``, where KEY is a sha256 of
-
-- everything the result is computed from: the mesh's exact vertex and face arrays, the pitch and
-  the other parameters;
-- the versions of the libraries that compute it;
-- the bytes of the source files of ncfix that compute it (``fingerprint``): a changed voxelizer
-  or grid builder never reads a grid the old code made. A stale grid could be wrong in the unsafe
-  direction, so the key is never trusted to a version number that someone has to remember to bump.
-
-Each file also holds its own key (member ``KEY_MEMBER``) and is used only when that key is the
-one asked for: a file that was renamed, copied over another or left by a writer without keys is
-never trusted by its name. A file whose key does not match, that cannot be read, or that holds
-other arrays than expected is rebuilt and written again, with a one-line notice on the ``ncfix``
-logger (the command line prints it on standard error). A folder that cannot be written is not an
-error either: the result is only not kept. Files are written under a temporary name and renamed, so a reader never sees half
-a file, and two runs writing the same key write the same bytes. Deleting the folder is always safe.
-
-A part's grid is cropped to what the program can reach, so each program's box gets its own grid
-(tens of MB at a 0.5 mm pitch). After each write the folder is kept under ``MAX_BYTES``: the files
-used least recently go first (a hit marks its file used).
+Building the checker's models (grids, covering balls and trees, cell lists, CoACD pieces) takes
+seconds and gives the same arrays for the same inputs every time. A result is stored under
+``$NCFIX_CACHE`` (default ``~/.cache/ncfix``) as ``KIND-KEY.npz``, KEY a sha256 of everything it is
+computed from, the libraries' versions and ncfix's own source that computes it; a file is used
+only when it holds that key. Deleting the folder is always safe. See docs/performance.md#the-cache.
 """
 
 from __future__ import annotations
@@ -82,7 +63,11 @@ def version(package: str) -> str:
 
 @functools.cache
 def fingerprint(*modules: str) -> str:
-    """sha256 of the source files of these modules (dotted names), read once per process."""
+    """sha256 of the source files of these modules (dotted names), read once per process.
+
+    Part of every key: a changed voxelizer or grid builder never reads a grid the old code made. A
+    stale grid could be wrong in the unsafe direction, so the key is never trusted to a version
+    number that someone has to remember to bump."""
     digest = hashlib.sha256()
     for name in modules:
         digest.update(name.encode() + b"\0")
@@ -175,7 +160,8 @@ def write_arrays(path: Path, arrays: dict[str, np.ndarray]) -> None:
 
     Members are stored uncompressed, each array's data at a multiple of ``ALIGN`` bytes in the file
     (the local header's extra field pads it), so that ``read_arrays`` can map it; the members' dates
-    are fixed, so the same arrays make the same bytes."""
+    are fixed, so the same arrays make the same bytes: a reader never sees half a file, and two
+    runs writing the same key write the same bytes."""
     path.parent.mkdir(parents=True, exist_ok=True)
     handle, temp = tempfile.mkstemp(dir=path.parent, prefix=path.stem, suffix=".tmp")
     try:
@@ -215,7 +201,14 @@ def cached(kind: str, key: str, names: Iterable[str], build: Callable[[], T],
     """``build()``'s result, read from the cache when this key was built before -> (result, hit).
 
     The file must hold this key (``KEY_MEMBER``); ``from_arrays`` may return None for arrays that
-    do not make a valid result. Either failure is a miss with a notice (module docstring).
+    do not make a valid result. Either failure is a miss with a notice: a file that was renamed,
+    copied over another or left by a writer without keys is never trusted by its name; one whose key
+    does not match, that cannot be read, or that holds other arrays than expected is rebuilt and
+    written again, with a one-line notice on the ``ncfix`` logger (the command line prints it on
+    standard error). A folder that cannot be written is not an error either: the result is only not
+    kept. After each write the folder is pruned to ``MAX_BYTES`` (a hit marks its file used); a
+    part's grid is cropped to what the program can reach, so each program's box gets its own file
+    (tens of MB at a 0.5 mm pitch).
     what : what is built, for the notice logged before a first build ("building WHAT…"; a file
         that is rebuilt has its own notice): a first run waits seconds to minutes here, and the
         user should know why before it starts.

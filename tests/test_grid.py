@@ -1,5 +1,5 @@
 """The part grids near the body: cells known to lie outside store their exact distance (grid.py's
-module doc), so the bound stays a lower bound everywhere and is at most 2h off in the band."""
+tighten_near_body), so the bound stays a lower bound everywhere and is at most 2h off in the band."""
 
 from __future__ import annotations
 

@@ -2,38 +2,8 @@
 distance fields of the parts and of the beads (compiled loops on the CPU, torch batches on CUDA);
 exact tests only where they cannot decide.
 
-Bodies. Each part is a ``DistanceGrid`` (a lower bound on the distance to the part anywhere in
-space); the beads are the store's rolling ``BeadField`` (a lower bound on the distance to the
-bead material). The head is a ``SphereTree`` over its covering balls (octree levels, 1 mm cells
-at the bottom); the deposit uses the tree of the balls that reach above the tip allowance.
-
-Test of a pose (tip C, rotation R) with a sweep margin (lin, ang): breadth first, a node with
-centre c and radius r is *clear* when ``lb(C + R c) > r + lin + ang·reach + clearance`` (reach =
-|c| + r: no point of the node is farther from the tip, so none moves more than lin + ang·reach
-when the tip moves lin and the head turns ang); a clear node clears its subtree. A pose is
-*free* when every path from the root ends in a clear node, else *undecided* (a ball fails, or
-more than MAX_PAIRS_PER_POSE nodes fail on one level). The bounds never say "collides": an
-undecided pose goes to the exact test (triangle pairs for parts, ``proximity``, and a body of the
-part or of the head wholly inside the other, ``nested``; the exact signed distance from the bead
-centres to the clipped head for beads), which decides. So the checker
-calls a pose free only when it is free, and calls it colliding only when the exact test says so.
-
-Sweeps (``ncfix.collision.path``) are sampled at the pitch; runs of consecutive samples are first
-certified together (coarse to fine): any sample k of a group lies within (|cumL_k - cumL_m|,
-|cumA_k - cumA_m|) of the group's middle sample m (the summed steps and turns between them), so m
-tested with margin max_k(lin_k + |ΔcumL|) and max_k(ang_k + |ΔcumA|) clears every sample of the
-group with its own margin. Groups of GROUP_LEVELS_MM of travel are tried, longest first; only the
-samples no group could clear are tested one by one. For beads, a group sees every bead of the
-window (a superset of what each of its poses sees: conservative); the exact test keeps the exact
-sequence (a pose sees the beads laid up to its own sample; the beads laid at its own sample get no
-sweep margin).
-
-Refinement. The exact test of a sample includes its sweep margin, so a head passing 0.3 mm from a
-body with 0.5 mm between samples would be a false alarm. A sample that hits only with its margin
-(not at its own pose) is split into ``path.REFINE_PARTS`` finer samples of its stretch, each with
-its own smaller margin, REFINE_LEVELS deep; it collides only when a finer sample does. Each finer
-margin covers its own stretch, so this stays conservative; what remains are false alarms within
-pitch / 16 of contact.
+The bounds never say "collides": a pose is called free only when it is free, and colliding only
+when an exact test says so. Design: docs/collision.md (the pieces, undecided poses, sweeps).
 """
 
 from __future__ import annotations
@@ -87,7 +57,11 @@ BEAD_CELL_MM = 4.0
 TIP_CACHE_MAX = 64
 TIP_CACHE_SLACK_MM = 0.01
 # A sample that hits only with its sweep margin is tested again as finer samples, this deep
-# (path.Refiner: REFINE_PARTS samples a level): false alarms of the margin go, hits stay.
+# (path.Refiner: REFINE_PARTS samples a level): false alarms of the margin go, hits stay. The exact
+# test of a sample includes its sweep margin, so a head passing 0.3 mm from a body with 0.5 mm
+# between samples would be a false alarm; each finer sample's smaller margin covers its own
+# stretch, so the sample collides only when a finer one does (still conservative). What remains
+# are false alarms within pitch / 16 of contact.
 REFINE_LEVELS = 2
 # Sequence number of beads every pose sees (the store's).
 ALWAYS_SEEN = np.iinfo(np.int64).min
@@ -230,7 +204,22 @@ class CheckerStats:
 
 
 class Checker:
-    """Array-level checker: head pose batches against parts and beads (see module doc).
+    """Array-level checker: head pose batches against parts and beads.
+
+    Bodies: each part is a ``DistanceGrid`` and the beads are the store's rolling ``BeadField``,
+    each a lower bound on the distance to its material anywhere in space. The head is a
+    ``SphereTree`` over its covering balls (octree levels, 1 mm cells at the bottom); the deposit
+    uses the tree of the balls that reach above the tip allowance.
+
+    Test of a pose (tip C, rotation R) with a sweep margin (lin, ang): breadth first, a node with
+    centre c and radius r is *clear* when ``lb(C + R c) > r + lin + ang·reach + clearance`` (reach =
+    |c| + r: no point of the node is farther from the tip, so none moves more than lin + ang·reach
+    when the tip moves lin and the head turns ang); a clear node clears its subtree. A pose is
+    *free* when every path from the root ends in a clear node, else *undecided* (a ball fails, or
+    more than MAX_PAIRS_PER_POSE nodes fail on one level). An undecided pose goes to the exact
+    test, which decides: triangle pairs (``proximity``) and a body of the part or of the head
+    wholly inside the other (``nested``) for parts; the exact signed distance from the bead
+    centres to the clipped head (``exact_beads``) for beads.
 
     head : closed trimesh in the head frame (tip at the origin, axis +Z)
     parts : (name, mesh, closed) in workpiece mm; names as the report shows them
@@ -377,8 +366,14 @@ class Checker:
         return self._undecided_batched(self.dep_tree, lower_bound, C, R, reach_mm, np.zeros(len(C)))
 
     def _grouped_undecided(self, tree, lower_bound, C, R, lin, ang, cum_lin, cum_ang) -> np.ndarray:
-        """(n,) bool: samples not cleared, coarse to fine (module doc). cum_lin / cum_ang (n,): summed
-        tip steps and turns from the first sample (|ΔC| and θ between consecutive samples)."""
+        """(n,) bool: samples not cleared, coarse to fine. cum_lin / cum_ang (n,): summed
+        tip steps and turns from the first sample (|ΔC| and θ between consecutive samples).
+
+        Any sample k of a group lies within (|cumL_k - cumL_m|, |cumA_k - cumA_m|) of the group's
+        middle sample m (the summed steps and turns between them), so m tested with margins
+        max_k(lin_k + |ΔcumL|) and max_k(ang_k + |ΔcumA|) clears every sample of the group with its
+        own margin. Groups of GROUP_LEVELS_MM of travel are tried, longest first; only the samples
+        no group could clear are tested one by one."""
         n = len(C)
         todo = np.arange(n)
         travel = cum_lin + self.rho_mm * cum_ang
@@ -447,7 +442,7 @@ class Checker:
         of each sample) only the last hitting sample of each move is found: the exact tests go
         from a move's last sample backwards and stop at its first hit (earlier ones stay False).
         With ``refine`` (a ``path.Refiner`` of the samples) a sample that hits only with its sweep
-        margin is tested again as finer samples (module doc)."""
+        margin is tested again as finer samples (REFINE_LEVELS)."""
         n = len(C)
         out = np.zeros((n, len(self.parts)), dtype=bool)
         for k, part in enumerate(self.parts):
@@ -633,7 +628,11 @@ class Checker:
         sweep margin is then tested again without it before refining (with them, a hit whose own
         clearance is below the clearance is known to collide without that test). ``progress``: as in
         ``sweep_parts``. ``pending_r``: the radius each pending bead is held as in the exact test
-        (None: the bead radius)."""
+        (None: the bead radius).
+
+        A group of samples sees every bead of the window (a superset of what each of its poses
+        sees: conservative); the exact test keeps the exact sequence (a pose sees the beads laid up
+        to its own sample; the beads laid at its own sample get no sweep margin)."""
         n = len(C)
         hit = np.zeros(n, dtype=bool)
         clearance = np.full(n, np.inf)

@@ -1,18 +1,10 @@
 """How deep the head goes into a part along a move: the report's penetration estimate.
 
-The exact reference decides whether a pose collides; how far is not well defined for bodies
-that are not convex. ncfix reports the depth of the head in the part: the largest distance from
-a point of the head's surface inside the part to the part's surface, over the poses of the move.
-A head that passes through a 10 mm wall reports about 5 mm (half the wall) wherever its
-ends are, not the clearance of one pose near the exit.
-
-Each part's distance grid (``grid``) marks the cells that may hold part material; the distance
-transform of those cells to the nearest unmarked one (an unmarked cell centre lies outside the
-part) gives, at a point's nearest cell centre, its depth to within about a cell diagonal. The
-field is built the first time a part collision is reported (one EDT of the grid). The head is
-sampled at about one point per spacing² of its surface (``surface_points``), and a move at
-``MOVE_POSES`` of its poses: an estimate to within a few millimetres, for the report only (no
-decision depends on it).
+How far a pose collides is not well defined for bodies that are not convex, so ncfix reports the
+largest distance from a point of the head's surface inside the part to the part's surface, over the
+poses of the move: a head through a 10 mm wall reports about 5 mm wherever its ends are, not the
+clearance of one pose near the exit. An estimate to within a few millimetres, for the report only:
+no decision depends on it.
 """
 
 from __future__ import annotations
@@ -30,7 +22,13 @@ MOVE_POSES = 8
 
 
 class DepthProbe:
-    """Penetration depth estimates of head poses into parts (module doc).
+    """Penetration depth estimates of head poses into parts.
+
+    Each part's distance grid marks the cells that may hold part material; the distance transform
+    of those cells to the nearest unmarked one (an unmarked cell centre lies outside the part)
+    gives, at a point's nearest cell centre, its depth to within about a cell diagonal. The field
+    is built the first time a part collision is reported (one EDT of the grid, ``inside_mm``). The
+    head is sampled at about one point per spacing² of its surface, a move at ``MOVE_POSES`` poses.
 
     head : trimesh in the head frame; grids : one DistanceGrid per part (the checker's)
     spacing_mm : how far apart the head's surface points are at most (``surface_points``)

@@ -1,16 +1,11 @@
-"""The sphere-tree descent of the checker as compiled loops, for the CPU.
+"""The sphere-tree descent of the checker as compiled loops, for the CPU; torch stays the path for CUDA.
 
-``Checker._undecided`` and ``Checker._failing_nodes`` in torch run level by level over every
-(pose, node) pair of a batch: a dozen small tensor operations per level, most of the time of a
-short program's fix spent in their overhead. On the CPU the same descent runs here pose by pose
-in one numba loop (runs of poses on the machine's cores: ``split``), with the same lower bounds (``DistanceGrid.lower_bound``,
-``BeadField.lower_bound``) evaluated point by point in the same arithmetic order, and the same
-rules: a node is clear when ``lb(C + R c) > r + lin + ang·reach + extra``; a pose is undecided
-when a leaf fails or more than ``cap`` nodes fail on one level. Torch stays the path for CUDA.
-
-A bound is passed as a *spec*: ``bound_spec(lower_bound)`` turns the bound method of a grid or a
-field into (mode, grid arrays, field arrays, below-field arrays), read at call time (a field's
-grids change with every add, overlay and growth).
+In torch the descent (``Checker._undecided``, ``Checker._failing_nodes``) costs a dozen small tensor
+operations per level, most of a short program's fix spent in their overhead. Here it runs pose by
+pose in one numba loop (runs of poses on the machine's cores: ``split``), with the same lower bounds
+evaluated point by point in the same arithmetic order and the same rules (a node is clear when
+``lb(C + R c) > r + lin + ang·reach + extra``; a pose is undecided when a leaf fails or more than
+``cap`` nodes fail on one level), so both paths make the same decisions.
 """
 
 from __future__ import annotations
@@ -40,7 +35,9 @@ def _field_arrays(f: BeadField):
 
 
 def bound_spec(lower_bound):
-    """(mode, grid, field, below) for the kernels, from a ``lower_bound`` bound method."""
+    """(mode, grid, field, below) for the kernels, from a ``lower_bound`` bound method (of a
+    ``DistanceGrid`` or a ``BeadField``). Read at call time: a field's grids change with every add,
+    overlay and growth."""
     body = getattr(lower_bound, "__self__", None)
     if isinstance(body, DistanceGrid):
         dist = np.ascontiguousarray(body.dist_mm, dtype=np.float32)

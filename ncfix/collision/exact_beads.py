@@ -1,21 +1,10 @@
 """The exact deposit test of undecided poses, as one compiled loop (``Checker._exact_kept``).
 
-For each pose (tip C, rotation R, sweep margins lin / ang, sequence number seq) the sphere tree
-names its failing nodes at ``CANDIDATE_LEVEL``; a bead can touch the clipped head only within
-``node radius + lin + ang·reach + bead radius + clearance`` of one of them. The loop visits, per
-failing node, the cells of a bucket grid of the beads around its ball (skipping a cell that lies
-wholly outside the ball, or wholly below the tip-allowance plane by the largest margin a bead of
-the pose can need: none of its beads would pass the tests below; on a filament print's dense
-beads this halves the loop), keeps each bead once per pose (the first node that reaches it),
-drops beads the pose does not see yet (laid at a later sample), beads wholly below the
-tip-allowance plane, and beads the head grid's lower bound clears;
-it then tests the rest exactly, smallest bound first, and stops at the pose's first touching bead
-(``ncfix.collision.near``: exact point-triangle distances, a winding number where the bound allows
-the centre to be inside the head).
-
-The same decisions as the numpy formulation it replaces (k-d tree pairs, a dedupe, vectorised
-filters, a coal call per bead), without holding the ~10⁸ candidate pairs of a nozzle running among
-its own beads.
+Per pose, the candidate beads near the sphere tree's failing nodes are gathered from a bucket grid
+and tested exactly (point-triangle distances to the clipped head, ``near``), most suspect first,
+stopping at the first touching bead. It makes the same decisions as a numpy formulation (k-d tree
+pairs, a coal call per bead) without holding the ~10⁸ candidate pairs of a nozzle running among its
+own beads. The loop's filters: ``first_bead_hits``; design: docs/deposit.md#the-exact-bead-test.
 """
 
 from __future__ import annotations
@@ -337,7 +326,18 @@ def first_bead_hits(C, R, lin, ang, seq, node_pose, node_c, node_r, node_reach, 
     """Per pose (n): hit (bool), with ``deepest`` its clearance: the smallest signed distance from a
     bead centre it sees to the clipped head minus that bead's radius (``buckets.radii``, at most
     ``bead_r``, which bounds the search) (+inf where free or not ``deepest``),
-    the candidate beads it had after the filters, and the beads tested exactly (module doc).
+    the candidate beads it had after the filters, and the beads tested exactly.
+
+    The sphere tree names each pose's failing nodes at ``CANDIDATE_LEVEL``; a bead can touch the
+    clipped head only within ``node radius + lin + ang·reach + bead radius + clearance`` of one of
+    them. The loop visits, per failing node, the cells of the bucket grid around its ball (skipping
+    a cell that lies wholly outside the ball, or wholly below the tip-allowance plane by the largest
+    margin a bead of the pose can need: none of its beads would pass the tests below; on a filament
+    print's dense beads this halves the loop), keeps each bead once per pose (the first node that
+    reaches it), drops beads the pose does not see yet (laid at a later sample), beads wholly below
+    the tip-allowance plane, and beads the head grid's lower bound clears; it then tests the rest
+    exactly, smallest bound first, and stops at the pose's first touching bead (exact
+    point-triangle distances, a winding number where the bound allows the centre to be inside).
     node_pose (m,) ascending: the pose of each failing node; node_c (m, 3) head-frame centres,
     node_r / node_reach (m,) radius and reach."""
     n = len(C)

@@ -1,31 +1,10 @@
 """Distance grids of meshes at the pitch: a lower bound on the distance to a body (looked up by
 compiled loops on the CPU, ``descent``; in torch on CUDA; the same arithmetic in each).
 
-A grid is built from *marked* cells: cells whose centre is inside the closed mesh (exact, by the
-column-parity voxelizer) plus cells the surface may pass through (centre within half a cell
-diagonal of a triangle, ``surface_cells``). Every point of the body lies in the closed cube of a
-marked cell, so within ``h = pitch·√3/2`` of a marked cell centre. The Euclidean distance
-transform ``D`` gives, at each cell centre ``c``, the distance to the nearest marked centre. For
-any point ``x`` and its nearest grid cell ``c`` (clamped to the grid), distance is 1-Lipschitz, so
-
-    dist(x, body) >= D(c) - |x - c| - h        (``DistanceGrid.lower_bound``)
-
-with no assumption on where ``x`` lies. Far outside the grid that bound is loose, so the larger
-of it and the distance from ``x`` to the body's bounding box (which holds all of the body) is used.
-Every approximation (cell size, nearest-cell lookup, float32 EDT values) is inside that bound,
-so a ball of radius r at x is certainly free when ``lower_bound(x) > r + clearance``; anything
-else is *undecided* and goes to the exact test (never straight to "collides").
-
-Near the body, where the exact tests are decided, ``D(c)`` can be up to ``2h`` below the true
-distance ``d(c)`` (``D`` measures to marked centres, each up to ``h`` from the body). So the cells
-within ``EXACT_BAND_MM`` whose centre is known to lie outside the body store
-``max(D(c), d(c) + h)`` instead, with ``d(c)`` the exact distance to the mesh's surface
-(``near.surface_distances``): the lookup and its proof stay as above, since
-``d(c) + h - |x - c| - h <= d(x)``, and the bound is up to ``2h`` tighter there. A centre is known
-outside when it is unmarked (farther than ``h`` from the surface and not inside), or marked only
-for the surface with the voxelizer calling it outside and farther from the surface than the
-voxelizer's ray jitter (so the jittered ray saw the same side). An open mesh has no inside: its
-surface is the body.
+The bound is valid anywhere in space and every approximation lies inside it, so a ball it clears
+is free; anything else is *undecided* and goes to the exact test, never straight to "collides".
+The proof is on ``DistanceGrid``, the exact band near the body on ``tighten_near_body``
+(docs/collision.md, "The pieces").
 """
 
 from __future__ import annotations
@@ -46,7 +25,7 @@ GRID_PAD_CELLS = 6
 # Peak bytes per cell while a grid is built (masks, the voxelizer's column sums, the EDT's float32
 # output): 29-35 measured on the sample mold at 1 and 0.5 mm; what ``ensure_fits`` checks.
 GRID_BUILD_BYTES_PER_CELL = 40
-# Cells outside the body with D below this (mm) store their exact distance (module doc).
+# Cells outside the body with D below this (mm) store their exact distance (``tighten_near_body``).
 EXACT_BAND_MM = 4.0
 # A surface cell's centre nearer the surface than this (mm) keeps D: the voxelizer's jittered ray
 # (TOLERANCES.ray_jitter_fraction of a cell) may have passed on the other side of the surface.
@@ -59,6 +38,21 @@ _GRID_ARRAYS = ("dist_mm", "origin_mm", "pitch_mm", "body_bounds_mm")
 @dataclass
 class DistanceGrid:
     """Distance from each cell centre to the nearest marked cell centre.
+
+    *Marked* cells: cells whose centre is inside the closed mesh (exact, by the column-parity
+    voxelizer) plus cells the surface may pass through (centre within half a cell diagonal of a
+    triangle, ``surface_cells``). Every point of the body lies in the closed cube of a marked cell,
+    so within ``h = pitch·√3/2`` of a marked cell centre. The Euclidean distance transform ``D``
+    gives, at each cell centre ``c``, the distance to the nearest marked centre. For any point
+    ``x`` and its nearest grid cell ``c`` (clamped to the grid), distance is 1-Lipschitz, so
+
+        dist(x, body) >= D(c) - |x - c| - h        (``lower_bound``)
+
+    with no assumption on where ``x`` lies. Far outside the grid that bound is loose, so the larger
+    of it and the distance from ``x`` to the body's bounding box (which holds all of the body) is
+    used. Every approximation (cell size, nearest-cell lookup, float32 EDT values) is inside that
+    bound, so a ball of radius r at x is certainly free when ``lower_bound(x) > r + clearance``.
+    An open mesh has no inside: its surface is the body.
 
     dist_mm : (nx, ny, nz) float32, mm (0 on marked cells)
     origin_mm : (3,) float64, centre of cell (0, 0, 0), in the frame of the mesh
@@ -143,7 +137,7 @@ class DistanceGrid:
 
 def marked_cells(mesh: trimesh.Trimesh, closed: bool, pitch_mm: float, origin_mm: np.ndarray,
                  shape: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Cells (nx, ny, nz) bool whose closed cube may hold a point of the body (see module doc),
+    """Cells (nx, ny, nz) bool whose closed cube may hold a point of the body (``DistanceGrid``),
     and the cells whose centre the voxelizer finds inside (all False for an open mesh).
 
     An open (surface-only) mesh marks only the cells its triangles may pass through.
@@ -161,7 +155,16 @@ def marked_cells(mesh: trimesh.Trimesh, closed: bool, pitch_mm: float, origin_mm
 def tighten_near_body(dist: np.ndarray, inside: np.ndarray, mesh: trimesh.Trimesh, origin_mm: np.ndarray,
                       pitch_mm: float) -> None:
     """Raises ``dist`` (the EDT, float32, in place) to ``d(c) + h`` at the cells within
-    ``EXACT_BAND_MM`` whose centre is known to lie outside the body (module doc)."""
+    ``EXACT_BAND_MM`` whose centre is known to lie outside the body.
+
+    Near the body ``D(c)`` can be up to ``2h`` below the true distance ``d(c)`` (``D`` measures to
+    marked centres, each up to ``h`` from the body). Storing ``max(D(c), d(c) + h)``, with ``d(c)``
+    the exact distance to the mesh's surface (``near.surface_distances``), keeps the lookup and its
+    proof (``d(c) + h - |x - c| - h <= d(x)``) and makes the bound up to ``2h`` tighter there. A
+    centre is known outside when it is unmarked (farther than ``h`` from the surface and not
+    inside), or marked only for the surface with the voxelizer calling it outside and farther from
+    the surface than the voxelizer's ray jitter (``JITTER_SAFE_MM``: the jittered ray saw the same
+    side)."""
     h = 0.5 * np.sqrt(3.0) * pitch_mm
     cells = np.flatnonzero((dist.ravel() <= EXACT_BAND_MM) & ~inside.ravel())
     if not len(cells):

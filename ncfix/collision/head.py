@@ -1,22 +1,9 @@
 """The head model for checking: balls that provably cover the head, densest near the nozzle.
 
-Built from a voxel grid of the head at the pitch (head frame: tip at the origin, axis +Z):
-
-1. *marked* cells: cells whose centre is inside the head (exact, column winding counts) plus
-   cells the surface may pass through (centre within half a cell diagonal of a triangle).
-   Every point of the head lies in a marked cell: a cell the surface does not cross is wholly
-   inside or wholly outside, and then its centre says which.
-2. *interior balls*: cubes of 2^L cells (L = max_level .. 1) whose circumscribed ball lies
-   within marked cells, coarsest first; they replace the many cells deep inside the head.
-3. *risk zones* (the seed's lower/middle/upper sections along the axis): the remaining marked
-   cells are covered by the circumscribed balls of cubes of 1, 2 and 4 cells in the lower,
-   middle and upper zone. Fine balls where collisions happen, coarse ones high up: the coarse
-   balls only make the model more conservative, never less.
-
-Every ball is the circumscribed ball of a cube of cells, and every marked cell lies in such a
-cube, so the union of balls covers the head: when every ball centre is farther than its radius
-(plus the clearance) from every body, the head is free. The balls are grouped into a few
-bounding spheres for a coarse first test.
+Every ball is the circumscribed ball of a cube of voxel cells and every cell that may hold a point
+of the head lies in such a cube, so the union of balls covers the head: when every ball is farther
+than its radius (plus the clearance) from every body, the head is free. The balls are grouped into
+bounding spheres (``SphereTree``) for a coarse first test. How they are built: ``build_head_model``.
 """
 
 from __future__ import annotations
@@ -129,7 +116,20 @@ def build_head_model(
     max_level: int = 4,
     target_spheres: int = 24,
 ) -> HeadModel:
-    """Build the covering-ball model of a closed head mesh given in the head frame."""
+    """Build the covering-ball model of a closed head mesh given in the head frame (tip at the
+    origin, axis +Z), from a voxel grid of the head at the pitch:
+
+    1. *marked* cells: cells whose centre is inside the head (exact, column winding counts) plus
+       cells the surface may pass through (centre within half a cell diagonal of a triangle).
+       Every point of the head lies in a marked cell: a cell the surface does not cross is wholly
+       inside or wholly outside, and then its centre says which.
+    2. *interior balls*: cubes of 2^L cells (L = max_level .. 1) whose circumscribed ball lies
+       within marked cells, coarsest first; they replace the many cells deep inside the head.
+    3. *risk zones* (the seed's lower/middle/upper sections along the axis): the remaining marked
+       cells are covered by the circumscribed balls of cubes of 1, 2 and 4 cells in the lower,
+       middle and upper zone. Fine balls where collisions happen, coarse ones high up: the coarse
+       balls only make the model more conservative, never less.
+    """
     pitch = float(pitch_mm)
     v = np.asarray(head.vertices, dtype=np.float64)
     f = np.asarray(head.faces, dtype=np.int64)

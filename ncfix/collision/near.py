@@ -1,17 +1,10 @@
 """Exact "is this ball touching that solid" tests for many small balls against one closed mesh.
 
-The deposit check asks, for thousands of (pose, bead) pairs, whether a bead sphere of radius r
-centred at a head-frame point q meets the clipped head: whether q is within r of the head's
-surface, or inside the head. One coal call per pair costs ~10 µs of Python; here the pairs go
-through one compiled loop.
-
-``NearSurface`` sorts the mesh's triangles into cubic cells: cell k lists every triangle within
-``cap + half a cell diagonal`` of its centre, so every triangle within ``cap`` of any point of the
-cell is listed there (the triangle inequality). A ball of radius r <= cap at q needs only the
-list of q's cell; a larger one reads every triangle. The distances are exact point-to-triangle
-distances (Ericson, Real-Time Collision Detection 5.1.5), the inside test the generalised winding
-number (van Oosterom and Strackee), so the answers are those of coal's sphere-mesh test plus a
-containment test, without their per-call cost.
+The deposit check asks, for thousands of (pose, bead) pairs, whether a bead sphere meets the
+clipped head: within its radius of the head's surface, or inside the head. One coal call per pair
+costs ~10 µs of Python; here the pairs go through one compiled loop, with exact point-to-triangle
+distances (Ericson, Real-Time Collision Detection 5.1.5) and the generalised winding number (van
+Oosterom and Strackee): the answers of coal's sphere-mesh test plus a containment test.
 """
 
 from __future__ import annotations
@@ -388,7 +381,11 @@ def surface_distances(triangles: np.ndarray, points: np.ndarray, cap_mm: float, 
 
 
 class NearSurface:
-    """Cell lists of a closed mesh's triangles for exact ball-touch tests (module doc).
+    """Cell lists of a closed mesh's triangles for exact ball-touch tests.
+
+    Cell k lists every triangle within ``cap + half a cell diagonal`` of its centre, so every
+    triangle within ``cap`` of any point of the cell is listed there (the triangle inequality). A
+    ball of radius r <= cap at q needs only the list of q's cell; a larger one reads every triangle.
 
     triangles : (m, 3, 3) float64, the closed solid's surface
     cap_mm : balls up to this radius read one cell's list (larger ones read every triangle)

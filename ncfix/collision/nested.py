@@ -1,18 +1,10 @@
 """Whether one body lies wholly inside the other at a head pose: the exact part test's second half.
 
-Where no head triangle meets a part triangle, every connected body of either mesh (a piece of
-surface whose triangles share edges) lies wholly inside or wholly outside the other solid; the
-two overlap exactly when a body of the part lies inside the head, or a body of the head inside
-the part. So one vertex per body decides, by its generalised winding number with respect to the
-other mesh (all of its bodies: a body inside a hollow head's or part's cavity is outside). A
-part mesh may hold several bodies (fixtures, clamps, parts exported together, a separate small
-feature): each is tested on its own, as the head's bodies are. An open part has no inside: only
-its bodies inside the head count.
-
-The bodies are split once (``MeshBodies``); a pose costs one compiled call that skips, by boxes,
-every body that cannot be inside (a part body whose box leaves the head's bounding ball, a head
-body with a vertex outside the part's box), and computes a winding number only for the rest
-(``ncfix.reference.ExactReference`` answers the same question plainly, for the tests).
+Where no head triangle meets a part triangle, every connected body of either mesh lies wholly
+inside or wholly outside the other solid, so one vertex per body decides, by its generalised
+winding number with respect to the other mesh (all of its bodies: a body in a hollow cavity is
+outside). See docs/collision.md#undecided-poses-and-the-exact-tests; ``ncfix.reference``'s
+``ExactReference`` answers the same question plainly, for the tests.
 """
 
 from __future__ import annotations
@@ -82,7 +74,15 @@ def mesh_bodies(mesh: trimesh.Trimesh) -> MeshBodies:
 
 
 class Nested:
-    """The containment test of one head against one part (module doc).
+    """The containment test of one head against one part.
+
+    The two overlap (no triangles meeting) exactly when a body of the part lies inside the head or
+    a body of the head inside the part. A part mesh may hold several bodies (fixtures, clamps,
+    parts exported together, a separate small feature): each is tested on its own, as the head's
+    bodies are; an open part has no inside: only its bodies inside the head count. The bodies are
+    split once (``MeshBodies``); a pose costs one compiled call that skips, by boxes, every body
+    that cannot be inside (a part body whose box leaves the head's bounding ball, a head body with
+    a vertex outside the part's box) and computes a winding number only for the rest.
 
     head, part : their ``MeshBodies`` (head frame; workpiece mm)
     closed : whether the part bounds a volume (else the head cannot be inside it)

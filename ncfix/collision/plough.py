@@ -1,18 +1,10 @@
 """Moves whose nozzle ploughs through its own extrudate: their material ends at their lower end.
 
-Material leaves the nozzle at its tip. When the head moves so that the tip's earlier positions
-along the move lie inside the head (a plunge along the nozzle's axis, or a plunge a few degrees off
-it under a wide nozzle cone), nothing extruded during the move can stay where it left the tip: the
-nozzle passes through that place, so the material is pushed ahead of the tip and ends under it at
-the move's lower end. Whether that holds is a property of the head's shape, decided exactly: in
-the head frame (tip at the origin) a move of displacement d leaves its material at the points
--s·d, s in (0, 1], relative to the tip at the move's end; the move ploughs when that whole segment
-lies inside the head mesh, at the head's orientations at both ends of the move.
-
-The segment test is exact and errs toward "not inside" (the material is then laid along the move,
-the conservative reading): no head triangle may cross the segment beyond the tip itself, its far
-end must have winding number about 1, and a crossing that passes within rounding of a triangle's
-edge makes the answer "not inside".
+When the tip's earlier positions along a move lie inside the head (a plunge along the nozzle's
+axis, or a few degrees off it under a wide cone), nothing extruded can stay where it left the tip:
+it is pushed ahead and ends under the nozzle. That is a property of the head's shape, decided
+exactly and erring toward "not inside" (the material is then laid along the move, the conservative
+reading). See docs/deposit.md#which-moves-deposit.
 """
 
 from __future__ import annotations
@@ -65,7 +57,14 @@ def _segments_inside(tris, u, length, out):  # pragma: no cover - compiled
 def ploughing_moves(triangles: np.ndarray, start_mm: np.ndarray, end_mm: np.ndarray,
                     r_start: np.ndarray, r_end: np.ndarray) -> np.ndarray:
     """(n,) bool: moves (start, end (n, 3) tip positions, workpiece mm; head rotations r_start,
-    r_end (n, 3, 3)) that plough through their own extrudate (module doc).
+    r_end (n, 3, 3)) that plough through their own extrudate.
+
+    In the head frame (tip at the origin) a move of displacement d leaves its material at the
+    points -s·d, s in (0, 1], relative to the tip at the move's end; the move ploughs when that
+    whole segment lies inside the head mesh, at the head's orientations at both ends of the move.
+    Exact, erring toward "not inside": no head triangle may cross the segment beyond the tip itself
+    (``TIP_EPS_MM``), its far end must have winding number about 1, and a crossing that passes
+    within rounding of a triangle's edge (``EDGE_EPS``) makes the answer "not inside".
 
     triangles : (m, 3, 3) float64, the head mesh in its frame (tip at the origin, axis +Z).
     Only moves that run into the head (toward the tip's side, ``d · N < 0`` at both ends) are

@@ -1,22 +1,10 @@
 """The orientation graph's objective, evaluated on a whole program: the yardstick of a correction.
 
-The graph strategy (``solve.GraphStrategy``) picks, per collision episode, the path of candidate
-orientations with the least sum of its steps plus ``DEVIATION_WEIGHT`` times each block's
-deviation from the programmed orientation (``graph.LayeredGraph``). ``path_cost`` evaluates that
-same sum on any corrected program, either strategy's output, against the program as posted:
-
-    cost = Σ step(N′) − Σ step(N) + DEVIATION_WEIGHT · Σ angle(N′ᵢ, Nᵢ)        (degrees)
-
-over consecutive motion blocks, where step is the graph's edge weight: the angle between a block's
-orientation and the one before, or, where the program itself turns by more than θ between the two
-blocks, the angle to the one before turned as the program turns (``Episode.turns``: tilt from +Z and
-azimuth about Z); the programmed path has no step there. The first term is the angular variation a
-correction adds to the program's own (negative where it smooths the program), the second how far it
-leans away from it. A program left as posted costs 0. Computed on the output as written (after
-blending, and at the printed decimals), it compares what the strategies deliver, not their
-internal searches: the graph's path is the least of this sum among its tested candidates on the
-resolution grid (the blocks it must keep colliding aside), so an EPA output that costs less is
-smoother or nearer the program than the graph's grid allowed.
+``path_cost`` evaluates the sum the graph strategy minimises per episode (its steps plus
+``DEVIATION_WEIGHT`` times each block's deviation, degrees) on any corrected program, either
+strategy's output as written, against the program as posted; a program left as posted costs 0.
+It compares what the strategies deliver, not their internal searches (docs/correction.md,
+"Choosing between them"; the "cost" column of ``bench/run``).
 """
 
 from __future__ import annotations
@@ -45,7 +33,8 @@ class PathCost:
 def steps_deg(vectors: np.ndarray, programmed: np.ndarray, max_step_deg: float) -> np.ndarray:
     """(n - 1,) the graph's step weight into each block after the first: the plain angle to the
     block before, or, where the programmed vectors turn by more than ``max_step_deg`` (θ), the angle
-    to the block before turned as the program turns there."""
+    to the block before turned as the program turns there (``Episode.turns``: tilt from +Z and
+    azimuth about Z)."""
     vectors = np.asarray(vectors, dtype=np.float64)
     programmed = np.asarray(programmed, dtype=np.float64)
     before = vectors[:-1].copy()
@@ -59,7 +48,17 @@ def steps_deg(vectors: np.ndarray, programmed: np.ndarray, max_step_deg: float) 
 def path_cost(programmed: np.ndarray, output: np.ndarray, max_step_deg: float,
               deviation_weight: float = DEVIATION_WEIGHT) -> PathCost:
     """The graph's objective of ``output`` (n, 3) unit tool vectors against ``programmed`` (n, 3),
-    the motion blocks of one program in order (module doc)."""
+    the motion blocks of one program in order:
+
+        cost = Σ step(N′) − Σ step(N) + DEVIATION_WEIGHT · Σ angle(N′ᵢ, Nᵢ)        (degrees)
+
+    over consecutive motion blocks, step the graph's edge weight (``steps_deg``; the programmed path
+    has no step where the program itself turns by more than θ). The first term is the angular
+    variation a correction adds to the program's own (negative where it smooths the program), the
+    second how far it leans away from it. On the output as written (after blending, at the printed
+    decimals) the graph's path is the least of this sum among its tested candidates on the
+    resolution grid (the blocks it must keep colliding aside), so an EPA output that costs less is
+    smoother or nearer the program than the graph's grid allowed."""
     programmed = np.asarray(programmed, dtype=np.float64).reshape(-1, 3)
     output = np.asarray(output, dtype=np.float64).reshape(-1, 3)
     if programmed.shape != output.shape:

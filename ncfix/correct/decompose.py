@@ -1,15 +1,10 @@
 """CoACD convex decomposition of a part mesh, cached on disk (one .npz per mesh and parameters).
 
-CoACD (Wei et al., SIGGRAPH 2022) cuts a non-convex mesh into pieces whose convex hulls stay
-within ``threshold`` (a concavity measure, relative to the mesh size) of the pieces. The union of
-the hulls covers the part approximately: it reaches beyond the part in shallow concave regions
-and may miss slivers where CoACD's manifold preprocessing reshapes the surface. It is therefore a
-guide for the EPA correction direction, never the judge of a collision.
-
-Decomposition takes seconds (8 s for the 724-face sample mold at 0.05), so the hulls are stored
-in the cache folder (``ncfix.cache``: ``coacd-KEY.npz``) under a key made of the mesh's exact
-arrays, the parameters and the CoACD version. The seed is fixed, so the same key always means the
-same hulls. A cache file that cannot be read is recomputed and overwritten.
+CoACD (Wei et al., SIGGRAPH 2022) cuts a non-convex mesh into pieces whose convex hulls stay within
+``threshold`` (a concavity measure, relative to the mesh size). Their union covers the part only
+approximately (beyond it in shallow concave regions; slivers may be missed where CoACD's manifold
+preprocessing reshapes the surface), so it guides the EPA correction's direction and never judges
+a collision. It takes seconds (8 s for the 724-face sample mold at 0.05): the hulls are cached.
 """
 
 from __future__ import annotations
@@ -48,7 +43,9 @@ class Decomposition:
 
 
 def cache_key(mesh: trimesh.Trimesh, threshold: float) -> str:
-    """sha256 of the vertex (float64) and face (int64) arrays, the parameters and CoACD's version."""
+    """sha256 of the vertex (float64) and face (int64) arrays, the parameters and CoACD's version.
+    The seed is fixed, so the same key always means the same hulls (``coacd-KEY.npz``, ``ncfix.cache``;
+    a file that cannot be read is recomputed and overwritten)."""
     digest = hashlib.sha256()
     digest.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
     digest.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())

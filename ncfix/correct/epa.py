@@ -1,31 +1,10 @@
 """The seed's EPA correction: tilt the head about its tip along the GJK/EPA extraction vector.
 
-Method (seed, "GJK Algorithm", "EPA Algorithm"):
-
-1. Each part is cut into convex pieces by CoACD (``decompose``); the head is replaced by its
-   convex hull (the seed's head "closely mirrors its convex hull").
-2. At a pose, only the pieces whose bounding box meets the head's world bounding box are tested
-   ("GJK with bounding box"), less those whose vertices all lie beyond the plane of the hull face
-   facing them most (a separating plane: they cannot meet the hull, so no answer changes; on
-   bathtub_5000 two fifths as many GJK calls). For each, coal's GJK says whether the hulls
-   overlap and its EPA gives the penetration depth d_i and the direction V_i (length d_i) that
-   moves the head out.
-   Deposited beads above the tip allowance are spheres, tested the same way against the head's
-   hull clipped at the tip allowance plane (the bottom of the head is not checked against beads).
-3. The extraction vector is E = Σ w_i V_i with w_i = |V_i| / Σ|V_k|.
-4. A translation is not allowed while printing, so the tool vector N is rotated about the tip C,
-   toward the part of E perpendicular to N (that moves the head along E), in small steps, until
-   the caller's checker says the pose is free. Variant "fixed" keeps the first E; variant "lami"
-   recomputes E at every rotated pose and takes the resultant of the previous and the new
-   direction (Lami's theorem), each weighted by its depth, so the path bends around an obstacle.
-   Where the hull model gives no direction although the checker rejects N0 (E zero, or parallel
-   to N), a ring of azimuths is tried at growing tilts instead.
-
-Approximate by design: convex hulls cover more than the head and (roughly) the parts, EPA
-depths of overlapping pieces do not add up to a global depth, and the walk is greedy, so the tilt
-found is small but not the smallest, and a free orientation may be missed. The hull model only
-steers; every orientation returned was accepted by the caller's conservative ``is_free``, so
-the answer is as safe as that checker.
+The parts are cut into convex pieces (``decompose``), the head is its convex hull; coal's GJK/EPA
+gives each overlapping piece's penetration, their weighted sum the extraction vector E, and the
+tool vector is turned about the tip toward E until the caller's conservative checker accepts it.
+The hull model only steers: every orientation returned passed that checker, so the answer is as
+safe as it is. Design and its approximations: docs/correction.md (``--strategy epa``).
 """
 
 from __future__ import annotations
@@ -159,7 +138,16 @@ class EpaModel:
     # ---- extraction vector ----------------------------------------------------------------
 
     def extraction_vector(self, C: np.ndarray, R: np.ndarray, beads_mm: np.ndarray | None = None) -> Extraction:
-        """E at the pose tip ``C`` (3,) workpiece mm, rotation ``R`` (3, 3); beads (m, 3) centres or None."""
+        """E at the pose tip ``C`` (3,) workpiece mm, rotation ``R`` (3, 3); beads (m, 3) centres or None.
+
+        Only the pieces whose bounding box meets the head's world bounding box are tested ("GJK
+        with bounding box"), less those whose vertices all lie beyond the plane of the hull face
+        facing them most (a separating plane: they cannot meet the hull, so no answer changes; on
+        bathtub_5000 two fifths as many GJK calls). For each, coal's GJK says whether the hulls
+        overlap and its EPA gives the penetration depth d_i and the direction V_i (length d_i)
+        that moves the head out. Beads above the tip allowance are spheres, tested the same way
+        against the head's hull clipped at the tip allowance plane. E = Σ w_i V_i with
+        w_i = |V_i| / Σ|V_k|."""
         c = np.asarray(C, dtype=np.float64).reshape(3)
         r = np.asarray(R, dtype=np.float64).reshape(3, 3)
         pose = coal.Transform3s(r, c)
@@ -233,6 +221,9 @@ class EpaModel:
         rotation_of : (n, 3) unit vectors -> (n, 3, 3) rotations (the machine decides the spin)
         is_free : (n, 3) unit vectors -> (n,) bool, the caller's conservative check at tip C
         variant : "fixed" (E once) or "lami" (E recomputed and combined at each step)
+        N is turned toward the part of E perpendicular to N (that moves the head along E), in
+        small steps. "lami" takes the resultant of the previous and the new direction (Lami's
+        theorem), each weighted by its depth, so the path bends around an obstacle.
         Orientations are tried in order of the walk, ``_BATCH`` per ``is_free`` call. When the
         hull model finds no penetration at N0, or E is parallel to N0 (no tilt direction), a
         fallback tries ``_RING_AZIMUTHS`` azimuths at each tilt step and keeps the first free one

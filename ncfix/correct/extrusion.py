@@ -1,26 +1,11 @@
 """The material and the feed follow a fix: E words and inverse-time F of moves whose length it changed.
 
-With ``--pivot tip`` a re-oriented block keeps its tip C and moves its programmed point to
-P′ = C − h·N′, so the moves into and out of it get longer or shorter. A move's length here is the
-straight distance between its start and end points P in the workpiece frame (the path the
-controller drives with TCP on; rotary motion adds nothing: ncfix never re-orients arcs). The moves
-of an episode are those ending at its rows and the move after its last row (it starts at one).
-
-Extrusion. Each depositing move whose length changed gets E in proportion to its new length (its
-programmed E per mm), then all of them are scaled by one factor so that the episode's E stays what
-the program gives: the absolute E of its last E word (M82) is unchanged, or the sum of its
-relative E words (M83) is, exact at the printed decimals. So no line after the episode changes,
-and moves whose length did not change keep their E. Absolute E words between the first and the
-last rescaled move carry the shift: a block whose only change that is gets the reason
-``extrusion rescaled``. A line between two moves that sets E (``G92 E``, a retraction without a
-move, an M82/M83 switch) splits the episode: each part keeps its own total.
-
-Inverse time (G93). F is 1/minutes, so a move of new length L′ gets F·L/L′: it keeps its
-programmed feed rate (mm/min). A block changed for that alone gets the reason ``feed rescaled``.
-
-With ``--pivot point`` P stays and none of this runs (the printed words' rounding alone would
-otherwise rewrite E). New values are printed with the decimals of the part's E (or F) words, in
-each word's own style (``ncfix.nc.emit.format_value``).
+With ``--pivot tip`` a re-oriented block moves its programmed point P, so the moves into and out of
+it get longer or shorter. Each such depositing move gets E in proportion to its new length, then
+one factor keeps the episode's material exact at the printed decimals (no line after it changes);
+a G93 move gets F·L/L′ and keeps its feed rate. With ``--pivot point`` P stays and none of this runs
+(the printed words' rounding alone would otherwise rewrite E). Design: docs/correction.md,
+"Extrusion and feed follow the fix".
 """
 
 from __future__ import annotations
@@ -38,7 +23,10 @@ RATE_WARN = 0.01
 
 def follow(stage, first: int, last: int) -> None:
     """Rewrite the E and G93 F words of the moves of the episode ``first .. last`` (stage rows,
-    already written into the table) whose length the fix changed (module doc)."""
+    already written into the table) whose length the fix changed. A move's length is the straight
+    distance between its start and end points P in the workpiece frame (the path the controller
+    drives with TCP on; rotary motion adds nothing: ncfix never re-orients arcs). The moves of an
+    episode are those ending at its rows and the move after its last row (it starts at one)."""
     r = stage.rows
     end = min(last + 1, len(r) - 1)
     rows = np.arange(first, end + 1)
@@ -96,7 +84,8 @@ def _lengths(path, w_start, w_end, tcp_start, tcp_end, known) -> np.ndarray:
 
 
 def _parts(stage, blocks: list[_Block]) -> list[np.ndarray]:
-    """Runs of consecutive blocks that no line between them splits (module doc)."""
+    """Runs of consecutive blocks that no line between them splits: a line that sets E (``G92 E``,
+    a retraction without a move, an M82/M83 switch) splits the episode; each part keeps its own total."""
     letter = stage.profile.extrusion_letter
     cuts = [0]
     for k in range(1, len(blocks)):
@@ -121,7 +110,15 @@ def _addresses(raw: str) -> set[str]:
 
 
 def _extrusion(stage, blocks: list[_Block], L0, L1, moved, texts: dict) -> None:
-    """New E texts of one part of the episode (module doc), into ``texts`` (block index → texts)."""
+    """New E texts of one part of the episode, into ``texts`` (block index → texts).
+
+    Each depositing move whose length changed gets E in proportion to its new length (its
+    programmed E per mm), then all of them are scaled by one factor so that the part's E stays what
+    the program gives: the absolute E of its last E word (M82) is unchanged, or the sum of its
+    relative E words (M83) is, exact at the printed decimals. Moves whose length did not change keep
+    their E. Absolute E words between the first and the last rescaled move carry the shift (reason
+    ``extrusion rescaled`` when that is a block's only change). New values take the decimals of the
+    part's E words, in each word's own style (``format_value``)."""
     letter = stage.profile.extrusion_letter
     has_e = np.array([letter in b.spans and np.isfinite(b.e_delta) for b in blocks])
     if not has_e.any():
@@ -182,7 +179,8 @@ def _round_keeping_sum(values: np.ndarray, total: int) -> np.ndarray:
 
 
 def _inverse_time(blocks: list[_Block], L0, L1, moved, texts: dict) -> None:
-    """New F texts of the G93 moves whose length changed: F·L/L′ (module doc)."""
+    """New F texts of the G93 moves whose length changed: F·L/L′ (F is 1/minutes, so the move keeps
+    its programmed feed rate in mm/min; reason ``feed rescaled`` when that is the block's only change)."""
     todo = [i for i, b in enumerate(blocks) if moved[i] and b.inverse_time and b.feed and "F" in b.spans]
     if not todo:
         return

@@ -1,15 +1,11 @@
 """Orientation graph + shortest path (seed steps 1–3, after Nishat et al.), as a layered dynamic program.
 
-Levels are consecutive blocks of a collision episode with ramps before and after; vertices are the
-candidate orientations of each block; an edge joins consecutive levels where the angle between
-the two orientations is at most the step limit (θ, --max-step); its weight is that angle plus a
-penalty on the deviation of the target from the programmed orientation (as Fang et al. and
-Plakhotnik et al. do). Both end levels are anchored to candidate 0. On a layered DAG, Dijkstra's
-result equals the level-by-level minimum computed here, all candidates of a level at once.
-
-The edges are found once (``LayeredGraph``); a search then takes a mask of the vertices allowed
-(free, or not yet tested), so a lazy search (solve, test the vertices of the path, search again)
-costs one vectorised pass over the edges per round.
+Levels are consecutive blocks of an episode with its ramps, vertices their candidate orientations,
+edges join consecutive levels within the step limit θ, weighted by the step plus a penalty on the
+target's deviation from the programmed orientation (as Fang et al. and Plakhotnik et al. do). Both
+end levels are anchored to candidate 0. On a layered DAG Dijkstra's result equals the level-by-level
+minimum computed here. The edges are found once (``LayeredGraph``); each search of the lazy loop
+takes a mask of the vertices allowed: one pass over the edges per round (docs/correction.md).
 """
 
 from __future__ import annotations

@@ -1,34 +1,9 @@
 """The correction stage: finds collision episodes in the stream and tilts the head out of them.
 
-The stage holds the chunks it has not finished and a table of their motion rows. It works forward
-through the rows in a fixed order, so that its decisions do not depend on how the input is split
-into chunks or windows:
-
-1. *Detect*: check the rows after the last final one (ends and sweeps, against the parts and the
-   beads laid before each, the current outputs of earlier rows) without committing beads.
-2. No collision: the rows up to ``ramp`` before the end of what was checked become final (their
-   beads go into the store, their chunks go out once every row of them is final). The last
-   ``ramp`` rows wait, so that a later episode can still ramp in over them.
-3. A collision at row f: the *episode* runs from f to the last colliding row e that follows a
-   colliding row by at most ``2·ramp + 1`` rows (closer episodes are one); rows are checked
-   (input is awaited) until ``e + 2·ramp + 1`` is known to be free. The episode is solved whole
-   over the levels ``max(final, f − ramp) .. e + ramp`` (the strategy), checked again with sweeps
-   and its own beads, and becomes final. Detection resumes after it.
-
-``ramp`` = ⌈Θ/θ⌉ + 1 blocks: enough to tilt from the programmed orientation to Θ in steps of θ.
-
-Detection is kept per row (``Detected``) and reused. A row's result is decided sample by sample
-(a sample collides when its exact test says so; the bounds only choose which samples get an
-exact test), so it depends only on its own move (the words of the row before and its own, its
-flags), the parts, and the beads within reach of its head at its samples (the store and the
-pending beads of the rows before it and its own). An episode changes the words of some of its
-rows: the moves that start or end at a changed row are checked again (their words differ), and
-so is every row whose head (the deposit tree's balls, at every sample and at the sweep start)
-came within its reach of a bead those moves laid, before or after the change (``_forget``). The
-rest keeps its result: the next detection checks only the runs of rows it cannot reuse, each
-with the pending beads of the rows before it (``PathChecker.check`` ``prior``). Beads the store
-retires change what every row sees: nothing is reused across that. A strategy's re-checks of one
-episode reuse each other's results by the same rule (``Rechecks``).
+It holds the chunks it has not finished and works forward through their motion rows in a fixed
+order, so its decisions do not depend on how the input is split into chunks or windows; a row's
+detection is reused until its move or the beads within its reach change. Design:
+docs/correction.md#episodes; the order of work on ``CorrectStage``.
 """
 
 from __future__ import annotations
@@ -127,7 +102,7 @@ class Rechecks:
     """The re-checks of one episode's moves with the words a strategy proposes (``Episode.recheck``).
 
     Each re-check reuses the last one's result of a move where nothing that result depends on
-    changed (module doc): its own words, and the beads within its reach. A move before the first
+    changed (``CorrectStage``): its own words, and the beads within its reach. A move before the first
     changed one keeps its result (it does not see later beads); a later unchanged move keeps it
     unless its head came within reach (``reach_mm``) of a bead of a changed move, as laid before
     or after the change. The rest are checked, in runs, each with the beads of the moves before
@@ -209,9 +184,39 @@ class Rechecks:
 
 
 class CorrectStage:
-    """Pipeline stage: checks every motion block and rewrites the colliding ones (module doc)."""
+    """Pipeline stage: checks every motion block and rewrites the colliding ones.
 
-    # Reuse detection results where nothing they depend on changed (module doc); False checks
+    The stage holds the chunks it has not finished and a table of their motion rows, and works
+    forward through the rows in a fixed order (``_advance``):
+
+    1. *Detect*: check the rows after the last final one (ends and sweeps, against the parts and the
+       beads laid before each, the current outputs of earlier rows) without committing beads.
+    2. No collision: the rows up to ``ramp`` before the end of what was checked become final (their
+       beads go into the store, their chunks go out once every row of them is final). The last
+       ``ramp`` rows wait, so that a later episode can still ramp in over them.
+    3. A collision at row f: the *episode* runs from f to the last colliding row e that follows a
+       colliding row by at most ``2·ramp + 1`` rows (closer episodes are one); rows are checked
+       (input is awaited) until ``e + 2·ramp + 1`` is known to be free. The episode is solved whole
+       over the levels ``max(final, f − ramp) .. e + ramp`` (the strategy), checked again with
+       sweeps and its own beads, and becomes final. Detection resumes after it.
+
+    ``ramp`` = ⌈Θ/θ⌉ + 1 blocks: enough to tilt from the programmed orientation to Θ in steps of θ.
+
+    Detection is kept per row (``Detected``) and reused. A row's result is decided sample by sample
+    (a sample collides when its exact test says so; the bounds only choose which samples get an
+    exact test), so it depends only on its own move (the words of the row before and its own, its
+    flags), the parts, and the beads within reach of its head at its samples (the store and the
+    pending beads of the rows before it and its own). An episode changes the words of some of its
+    rows: the moves that start or end at a changed row are checked again (their words differ), and
+    so is every row whose head (the deposit tree's balls, at every sample and at the sweep start)
+    came within its reach of a bead those moves laid, before or after the change (``_forget``). The
+    rest keeps its result: the next detection checks only the runs of rows it cannot reuse, each
+    with the pending beads of the rows before it (``PathChecker.check`` ``prior``). Beads the store
+    retires change what every row sees: nothing is reused across that. A strategy's re-checks of
+    one episode reuse each other's results by the same rule (``Rechecks``).
+    """
+
+    # Reuse detection results where nothing they depend on changed (the class doc); False checks
     # every row again at every detection (the reference the reuse is tested against).
     REUSE_DETECTION = True
 

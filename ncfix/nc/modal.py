@@ -3,14 +3,8 @@
 Tracks G90/G91, G20/G21 (Siemens G70/G71/G700/G710, Heidenhain ``BEGIN PGM … INCH``),
 G0/G1/G2/G3, G93/G94/G95, TCP on/off per profile, extrusion (M82/M83, ``G92 E``), the
 deposit codes, and the modal rule of vector words (none → previous vector; some → the missing
-ones are 0). On G2/G3, I J K are arc centres, never tool vectors.
-
-Arcs. A G2/G3 block gets its arc (``Block.arc``: centre, normal axis, sense) when ncfix can follow
-it: G17/G18/G19 planes; the centre from I J K (incremental from the start point, or absolute after
-G90.1) or from the radius (R, Siemens CR=; negative for more than 180°); Heidenhain ``C`` about the
-last ``CC`` pole and ``CR`` with R, both with DR+/DR-. Other forms (Siemens ``I=AC(..)``, Heidenhain
-CT/CP, an arc without a centre or radius) keep ``arc`` None: they are checked along their chord and
-the report says so.
+ones are 0). On G2/G3, I J K are arc centres, never tool vectors; the arc forms ncfix follows
+are listed on ``Interpreter._arc``.
 """
 
 from __future__ import annotations
@@ -66,7 +60,8 @@ def _code_key(code: str) -> tuple[str, float | str]:
 
 
 class Interpreter:
-    """Feed it lines in order; it returns a :class:`Block` per line (see module docstring)."""
+    """Feed it lines in order; it returns a :class:`Block` per line (the modal state it tracks:
+    the module docstring)."""
 
     def __init__(self, profile: Profile, source: str = "<stdin>", deposit_codes: tuple[str, str] | None = None):
         self.profile = profile
@@ -480,7 +475,14 @@ class Interpreter:
     def _arc(self, start: list[float], end: list[float], words: dict[str, str], code: str,
              heidenhain_kind: str | None) -> tuple[float, float, float, int, int] | None:
         """The arc of a G2/G3 (Heidenhain C/CR) block from ``start`` to ``end`` (mm), or None when
-        ncfix cannot follow it (module doc)."""
+        ncfix cannot follow it.
+
+        Followed (``Block.arc``: centre, normal axis, sense): G17/G18/G19 planes; the centre from
+        I J K (incremental from the start point, or absolute after G90.1) or from the radius (R,
+        Siemens CR=; negative for more than 180°); Heidenhain ``C`` about the last ``CC`` pole and
+        ``CR`` with R, both with DR+/DR-. Other forms (Siemens ``I=AC(..)``, Heidenhain CT/CP, an
+        arc without a centre or radius) give None: they are checked along their chord and the
+        report says so."""
         if not all(math.isfinite(v) for v in (*start, *end)) or "" in words.values():
             return None
         scale = MM_PER_INCH if self.inch else 1.0

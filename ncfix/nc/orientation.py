@@ -1,34 +1,10 @@
 """Which machine profile reads which tool-orientation words: a word the profile does not read is an
 error, never ignored, and ``--machine auto`` picks the one profile that reads a program's words.
 
-A program posted for another machine reads wrongly under the wrong profile: Siemens ``A3=`` under
-``ijk`` would leave the tool vertical, ``A``/``C`` angles under ``ijk`` too, I J K under an A/C
-profile would be dropped. So every orientation word of any built-in profile (and of the profile in
-use) is known here, with the profiles that read it; a block that holds one its profile does not
-read stops the run naming the line, the word and those profiles.
-
-Some letters are orientation words only in context, and are left alone elsewhere:
-
-- I J K are a tool vector only on a G0/G1 block; on G2/G3 they are arc centres, and with G10,
-  G33, G68.x, G76 or a canned cycle (G81-G89) they are that code's parameters.
-- A single letter with no value is no word (Heidenhain's ``C`` arc keyword).
-- Letters on a block that only calls an M code of 100 or more (``M205 B20000``, ``M900 K0.05``:
-  firmware settings on printers) or a data code (G10, G65) are that code's parameters.
-
-``--machine auto`` reads the program's head: the lines up to its ``AUTO_BLOCKS``-th block with an
-orientation word (buffered when the input cannot be rewound). The built-in profiles that read
-every orientation word seen, and read at least one of them as an orientation word, are the
-candidates; then, in order:
-
-- the ones that read the most of the words as orientation words (A/C angles are not the S3
-  printer's program, whose A is its filament), and a profile whose extrusion letter is another's
-  rotary word only when the program resets that letter with G92, as printers do;
-- with E words in the program, the profiles whose extrusion letter is E;
-- a profile that switches TCP by codes (LinuxCNC's M428) only when the program uses one, and
-  then over the profiles that would ignore it.
-
-One candidate left is the choice, said in a note; none or several is an error naming them. A
-program without orientation words is read as ``ijk`` (the tool stays vertical under any profile).
+A program posted for another machine reads wrongly under the wrong profile (Siemens ``A3=`` under
+``ijk`` would leave the tool vertical; I J K under an A/C profile would be dropped), so a block
+holding an orientation word its profile does not read stops the run naming the line, the word and
+the profiles that read it. The rules, and auto-detection's tie-breaks: docs/profiles.md.
 """
 
 from __future__ import annotations
@@ -104,7 +80,7 @@ def shown(word: str, assigned: bool) -> str:
 
 
 class BlockWords:
-    """Reads the orientation words of one block in context (module docstring); shared by the
+    """Reads the orientation words of one block in context (``orienting``); shared by the
     profile check in the modal interpreter and by ``--machine auto``."""
 
     def __init__(self, words: frozenset[str]):
@@ -122,9 +98,15 @@ class BlockWords:
     @staticmethod
     def orienting(suspects: list[tuple[str, str, bool]], motion: int | None, gs: list[float],
                   ms: list[float], line_kind: str | None) -> list[tuple[str, bool]]:
-        """The suspects that set an orientation on this block (module docstring): ``motion`` is the
-        motion mode after the block's G codes, ``gs`` and ``ms`` its G and M numbers, ``line_kind``
-        a Heidenhain block's keyword (L, LN, C …) or None."""
+        """The suspects that set an orientation on this block: ``motion`` is the motion mode after
+        the block's G codes, ``gs`` and ``ms`` its G and M numbers, ``line_kind`` a Heidenhain
+        block's keyword (L, LN, C …) or None.
+
+        Some letters are orientation words only in context: I J K are a tool vector only on a G0/G1
+        block (on G2/G3 arc centres; with G10, G33, G68.x, G76 or a canned cycle G81-G89 that
+        code's parameters); a single letter with no value is no word (Heidenhain's ``C`` arc
+        keyword); letters on a block that only calls an M code of 100 or more (``M205 B20000``,
+        ``M900 K0.05``: printer firmware settings) or a data code (G10, G65) are its parameters."""
         parameters = (line_kind is None and not gs and any(m >= 100 for m in ms)) or any(g in _DATA_G for g in gs)
         out = []
         for name, value, assigned in suspects:
@@ -239,7 +221,15 @@ class Choice:
 
 def choose(evidence: Evidence, source: str) -> Choice:
     """The one built-in profile that reads every orientation word seen, or a ProgramError naming
-    the candidates (none, or several that the program cannot tell apart)."""
+    the candidates (none, or several that the program cannot tell apart).
+
+    Candidates: the built-in profiles that read every orientation word seen and at least one of
+    them as an orientation word. Then, in order: the ones that read the most of the words as
+    orientation words (A/C angles are not the S3 printer's program, whose A is its filament), a
+    profile whose extrusion letter is another's rotary word only when the program resets that
+    letter with G92; with E words, the profiles extruding on E; a profile that switches TCP by
+    codes (LinuxCNC's M428) only when the program uses one, and then over the others. A program
+    without orientation words is read as ``ijk`` (the tool stays vertical under any profile)."""
     profiles = builtin_profiles()
     seen = sorted(evidence.words.items(), key=lambda item: (item[1], item[0][0]))
     if not seen:
