@@ -1,22 +1,10 @@
 """Exact reference check of head poses against part meshes and deposited beads (tests, benchmarks).
 
-Parts: ``ncfix.collision.exact`` (the checker's own exact test), coal BVH mesh-vs-mesh. A pose collides when a head triangle meets a part triangle, or when
-a body lies wholly inside the other mesh: mesh-mesh collision tests triangles only, so each
-connected body of the part (a mesh may hold several: fixtures, parts exported together) and of
-the head is tested on its own, one vertex of it by its generalised winding number with respect
-to the whole other mesh (a body in a hollow part's cavity is outside it). With no triangles
-meeting, a body lies wholly inside or wholly outside, so the yes/no answer is exact. An open part
-(``open_parts``) has no inside: only its bodies inside the head count. Separated poses get the
-exact mesh-to-mesh distance. For colliding poses the negative number is the deepest penetration
-found: the deepest head vertex inside a part and the deepest part vertex inside the head. It is
-a lower bound on the true penetration depth (which is not well defined for non-convex bodies);
-only its sign is exact.
-
-Beads: spheres, checked analytically against the head above the tip allowance (the head clipped
-by the plane z = tip_allowance_mm in the head frame with manifold3d, so it stays a closed solid).
-
-Poses follow docs/contract.md: tip at C (workpiece mm), rotation R (3, 3) with R @ (0, 0, 1) = N;
-a head-frame point x is at C + R @ x in the workpiece.
+Parts: ``ncfix.collision.exact``, the checker's own exact test (coal BVH mesh-vs-mesh, and each
+connected body tested for lying wholly inside the other mesh, so the yes/no answer is exact);
+beads: spheres, checked analytically against the head clipped at the tip allowance, apart from
+the checker's bead kernels. Poses follow docs/contract.md: tip at C (workpiece mm), rotation R
+with R @ (0, 0, 1) = N. ``label_program`` reads a whole program with its own deposit loop.
 """
 
 from __future__ import annotations

@@ -1,34 +1,12 @@
-"""The rolling deposit model: which blocks deposit, and the beads laid so far (a chain of spheres).
+"""The rolling deposit model: which blocks deposit, where their material lies, and the beads laid
+so far.
 
-Which blocks deposit (docs/contract.md): a feed move (G1/G2/G3, never G0) deposits when the program has
-extrusion words and E grows (the modal reader gives ``e_delta`` > 0 for absolute and relative E);
-otherwise, with ``--deposit-codes``, between ON and OFF; otherwise every feed move deposits.
-"The program has extrusion words" is decided while streaming, on the first window (the first
-chunk the checker sees): if any extrusion word appears there, the E rule holds for the whole
-program; a program whose first E word comes later is read with the other rules.
-
-Beads are laid along the deposited path, sampled at most half a pitch apart (each depositing move
-from its start to its end point, both included), as the nozzle lays them (``BeadShape``): below
-the tip along the tool axis. A move within AXIAL_DEG of the tool axis (a plunge or a lift that
-extrudes), or one whose nozzle ploughs through its own extrudate (``ncfix.collision.plough``),
-lays its material at its lower end only: what leaves the nozzle while it runs along its own axis
-ends under it, not in a column along the move. The checker holds each bead as a sphere
-(``BeadShape.radius_mm``) that contains the stated bead; a move whose tip loops (TCP off: its
-path LOOP_RATIO times the programmed one or longer) spreads its material along that path as a
-thinner strand (``strand_along``, ``BeadShape.strand``) where it comes to rest (``strand_at_rest``),
-whose beads the exact test holds at their own, smaller radius (every bound and field keeps the
-stated one).
-
-``BeadStore`` keeps them twice:
-
-- the exact centres, for the exact fallback (log-structured k-d trees, built only when a query
-  needs them: a program that never comes near its beads never builds one; 24 bytes a bead), at
-  most EXACT_BEADS_MAX of them, the newest: older ones are retired into a field of their own,
-  and an exact test near them errs toward "collides" (``BeadStore``);
-- ``BeadField``, a rolling distance field that lower-bounds the distance from any point to the
-  bead material, for the fast test (see its doc). Its memory is that of the box around the beads
-  (one byte per pitch³ cell of the bead box padded by a few mm, plus a 4 mm coarse grid), not the
-  program's length: re-printing or travelling over the same region costs nothing more.
+The rule (``choose_rule``, decided on the first window: E words, else the deposit codes, else
+every feed move), the bead's place and shape (``BeadShape``: below the tip along the tool axis),
+plunges, lifts and ploughing moves laid at their lower end (``axial_moves``), and the strands of
+looping tips (``strand_along``, ``strand_at_rest``) are described in docs/deposit.md.
+``BeadStore`` keeps the beads twice: exact centres for the exact test, and ``BeadField``, a
+rolling distance field for the fast one, whose memory is the beads' box, not the program's length.
 """
 
 from __future__ import annotations
@@ -222,7 +200,9 @@ def rule_text(rule: DepositRule, extrusion_letter: str = "E") -> str:
 
 
 def choose_rule(e_delta: np.ndarray, deposit_codes_given: bool, bead_radius_mm: float) -> DepositRule:
-    """The rule for the whole program, from the first window's extrusion column (see module doc)."""
+    """The rule for the whole program (docs/contract.md), from the first window's extrusion column:
+    if any extrusion word appears in the first chunk the checker sees, the E rule holds for the
+    whole program; a program whose first E word comes later is read with the other rules."""
     if bead_radius_mm <= 0:
         return DepositRule.OFF
     if np.isfinite(e_delta).any():

@@ -1,28 +1,10 @@
 """Checking runs of consecutive motion blocks: end poses, sweeps between them, and their beads.
 
-Between two motion points the words are interpolated as the controller does (linear in axis
-angles, great circle for tool vectors via normalised linear interpolation of unit vectors) and
-the pose is sampled so that no point of the head moves more than the pitch between samples
-(|ΔC| + ρ·θ, ρ = the head's largest distance from its tip). Sample k is checked with an extra
-margin d_k = |ΔC| + ρ·θ to sample k−1: every pose in between lies within d_k of sample k, so
-the sampled checks cover the continuous sweep. The margin is split in its parts (lin = |ΔC|,
-ang = θ): a head point at distance d from the tip is checked with lin + ang·d (the checker's
-sphere tree knows each node's distance). Runs of samples are certified together first (coarse to
-fine, ``Checker._grouped_undecided``). The sweep belongs to the block that ends it.
-
-Arcs (G2/G3 whose centre the reader knows, ``Moves.arc``) are followed as the controller moves:
-the point turns about the centre in the arc's plane (radius blended from start to end, a helix
-along the normal), the other words linearly. Samples are at most a quarter turn apart, and a
-sample's linear margin is |ΔP| + h·|ΔN| (no point of an arc of less than half a turn is farther
-from its end than its chord).
-
-Beads of depositing moves are laid from the move's start to its end point (along the arc for
-arcs), at most half a pitch apart, each ``Checker.bead_drop_mm`` below P along the tool axis
-there (``deposit.BeadShape``); a plunge or lift (``deposit.axial_moves``) lays one bead, at its
-lower end; a move whose tip path is LOOP_RATIO times its programmed length or longer (TCP off)
-lays a thinner strand along that path, where it comes to rest, each of its beads with its own
-radius (``_looping_beads``). A bead exists from the first sample at or after its place on the move
-(sequence numbers); the strand's straight line between the move's ends, from the move's end.
+The words are interpolated as the controller moves (axis angles linearly, tool vectors on the
+great circle, arcs about their centre) and sampled so that no head point moves more than the
+pitch between samples; each sample is checked with that step as margin, which covers the
+continuous sweep (docs/collision.md#sweeps). Beads are laid as docs/deposit.md says; a bead
+exists from the first sample at or after its place on the move (sequence numbers).
 """
 
 from __future__ import annotations
@@ -225,8 +207,11 @@ class PathChecker:
         return hits, seq0 + total
 
     def margins(self, P, N, C, R, prev_P, prev_N, prev_C, prev_R, on_arc) -> tuple[np.ndarray, np.ndarray]:
-        """Sweep margins of samples from the sample before each: lin = |ΔC| (|ΔP| + h·|ΔN| on arcs,
-        module doc; prev_P / prev_N are read only there) and ang = the head's turn (rad)."""
+        """Sweep margins of samples from the sample before each: lin = |ΔC| and ang = the head's
+        turn (rad); a head point at distance d from the tip moves at most lin + ang·d between them
+        (the sphere tree knows each node's d). On arcs lin = |ΔP| + h·|ΔN|: samples are at most a
+        quarter turn apart, and no point of an arc of less than half a turn is farther from its
+        end than its chord (prev_P / prev_N are read only there)."""
         lin = np.linalg.norm(C - prev_C, axis=1)
         if on_arc.any():
             alt = np.linalg.norm(P - prev_P, axis=1) + self.standoff_mm * np.linalg.norm(N - prev_N, axis=1)
