@@ -29,6 +29,9 @@ def main(argv: list[str]) -> int:
             if case.sample:
                 shutil.copyfile(golden_cases.SAMPLES / case.sample, case.input)
             result = golden_cases.run(case, Path(scratch))
+            if result.exit not in (0, 1, 2):  # interrupted (128 + N): nothing to keep
+                print(f"{case.name}: exit {result.exit}; its expected files are left as they were", file=sys.stderr)
+                return result.exit
             golden_cases.write_expected(case, result)
             print(f"{case.name}: exit {result.exit}", file=sys.stderr)
     return 0
