@@ -223,6 +223,7 @@ def test_a_damaged_or_keyless_cache_file_is_rebuilt_with_a_notice(tmp_path, capl
     assert path.name == f"grid-{key}.npz"  # rewritten, with its key
 
 
+@pytest.mark.heavy  # two end-to-end checks from cold; test_swapped_cache_files_are_rebuilt_with_a_notice is the fast one
 def test_a_check_from_swapped_cache_files_is_the_cold_check(tmp_path, monkeypatch, caplog):
     """The issue's case end to end: a warm cache whose two grid files (the part's and the clipped
     head's) were swapped gives the cold run's colliding blocks (trusted by name, the swapped grids
@@ -376,6 +377,7 @@ def _check_wall(folder: Path, monkeypatch) -> list:
     return report.collisions
 
 
+@pytest.mark.heavy  # two end-to-end fixes; the deposit check below is the fast end-to-end warm/cold case
 def test_a_fix_from_a_warm_cache_is_the_fix_from_a_cold_one(tmp_path, monkeypatch):
     folder = tmp_path / "cache"
     cold = _fix_ijk(folder, monkeypatch)
