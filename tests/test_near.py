@@ -38,10 +38,10 @@ def _points(triangles, n, seed):
 
 @pytest.fixture(scope="module")
 def brute(solid):
-    """9,000 points about the solid (a third of them within 0.6 mm of its surface), their distance to
+    """4,500 points about the solid (a third of them within 0.6 mm of its surface), their distance to
     it, whether they lie inside and their signed distance, by brute force (computed once: it is
     most of this module's time)."""
-    pts = _points(solid, 6000, seed=8)
+    pts = _points(solid, 3000, seed=8)
     d = point_mesh_distance(pts, solid)
     inside = winding_numbers(pts, solid) > 0.5
     return pts, d, inside, np.where(inside, -d, d)
