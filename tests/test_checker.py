@@ -72,6 +72,7 @@ def _random_rotations(rng, n: int, max_tilt_deg: float) -> np.ndarray:
 # -- grid ------------------------------------------------------------------------------------
 
 
+@pytest.mark.heavy  # test_grid.py holds the mold's grid to the same bound, and tighter, in the fast run
 def test_distance_grid_lower_bound_never_exceeds_the_true_distance(meshes):
     _, mold = meshes
     grid = build_distance_grid(mold, PITCH)
@@ -633,6 +634,7 @@ def test_the_stage_gives_back_each_chunk_at_once(checker):
     assert list(stage.flush()) == []
 
 
+@pytest.mark.heavy  # an end-to-end check with the exact reference at every block (golden fix cases: every profile)
 def test_rotary_profile_program_is_checked_through_forward_kinematics(checker, meshes):
     _, mold = meshes
     P, N = bathtub_path(50, mold)

@@ -33,7 +33,7 @@ def mold_grid(mold):
 @pytest.fixture(scope="module")
 def mold_points(mold):
     """Points near the mold's surface (most within 1.5 mm, some within 4) and their exact distance."""
-    points = np.concatenate([_near_surface_points(mold, 2000, 1.5, 5), _near_surface_points(mold, 1000, 4.0, 6)])
+    points = np.concatenate([_near_surface_points(mold, 4000, 1.5, 5), _near_surface_points(mold, 2000, 4.0, 6)])
     return points, _true_distance(mold, points, True)
 
 
