@@ -1,7 +1,7 @@
 """Draw the README's picture of what ncfix does: `python scripts/make_readme_figure.py [OUT_SVG]`.
 
-Runs ncfix on the golden ijk case (tests/cases/fix/fix_ijk.nc: a straight path along X with a wall
-on its +Y side, the sample head vertical, tests/cases/fix/make_cases.py's settings) and writes
+Runs ncfix on the golden ijk case (tests/golden/fix_ijk/input.nc: a straight path along X with a wall
+on its +Y side, the sample head vertical, the case's settings) and writes
 docs/what-ncfix-does.svg (or OUT_SVG): a small, self-contained SVG written directly, no plotting
 library. It shows
 
@@ -34,9 +34,8 @@ from ncfix.nc.modal import Interpreter
 from ncfix.profiles import load_profile
 
 REPO = Path(__file__).resolve().parents[1]
-CASE = REPO / "tests" / "cases" / "fix"
-PROGRAM = CASE / "fix_ijk.nc"
-WALL = CASE / "wall_x.stl"
+PROGRAM = REPO / "tests" / "golden" / "fix_ijk" / "input.nc"
+WALL = REPO / "tests" / "golden" / "meshes" / "wall_x.stl"
 HEAD = REPO / "samples" / "deposition_head.stl"
 OUT = REPO / "docs" / "what-ncfix-does.svg"
 STANDOFF_MM = 6.0  # ncfix's default: the tip C is 6 mm from the programmed point P along N

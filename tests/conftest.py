@@ -54,6 +54,23 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """With -rs's list of skips and their reasons: what -m and -k left out, and how to run the heavy cases."""
+    left_out = terminalreporter.stats.get("deselected", [])
+    if not left_out:
+        return
+    expression = config.getoption("-m") or ""
+    heavy = sum(1 for item in left_out if "heavy" in item.keywords) if "not heavy" in expression else 0
+    terminalreporter.section("left out", sep="-")
+    if heavy:
+        terminalreporter.write_line(f"{heavy} heavy (corpus-wide, end-to-end and full property runs): "
+                                    f"pytest -m heavy runs them, as CI's second step does")
+    if len(left_out) > heavy:
+        chosen = " and ".join(f"{flag} {value!r}" for flag, value in (("-m", expression), ("-k", config.getoption("-k")))
+                              if value)
+        terminalreporter.write_line(f"{len(left_out) - heavy} not chosen by {chosen}")
+
+
 _ORACLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 

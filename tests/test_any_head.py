@@ -37,11 +37,13 @@ CORPUS_HEADS = {
     # In its assembly's frame: the nozzle tip at (-4.4, -89.0, 12.5), the axis along +Y (MANIFEST.md).
     "e3d_v6": ("e3d_v6/e3d_v6.stl", (-4.4, -89.0, 12.5), (0.0, 1.0, 0.0)),
 }
-# Fast cells run by default; the rest of the matrix (the finest rings, the corpus heads' second
-# sample) is heavy.
+# Fast cells run by default, one per kind of head (a coarse ring, a fine ring with strip caps, the
+# non-round corpus head, the torch), both samples and both strategies among them; the whole matrix
+# is heavy.
 REVOLVED = [(segments, caps) for segments in (8, 64, 128, 512, 1024) for caps in ("fan", "strip")]
 HEADS = [f"revolved{s}-{c}" for s, c in REVOLVED] + ["revolved512-pointed", *CORPUS_HEADS, "torch"]
-FAST = {"revolved8-fan", "revolved128-fan", "revolved128-strip", "extruderHead_original", "torch"}
+FAST = {("revolved8-fan", "wall", "epa"), ("revolved128-strip", "pocket", "graph"),
+        ("extruderHead_original", "pocket", "graph"), ("torch", "wall", "graph")}
 
 
 def _head(name: str, folder: Path) -> tuple[str, tuple, tuple]:
@@ -174,7 +176,7 @@ def exact_collisions(program: Path, head: trimesh.Trimesh, parts: dict) -> tuple
 
 
 CELLS = [pytest.param(head, sample, strategy,
-                      marks=() if head in FAST and (sample == "wall" or strategy == "graph") else pytest.mark.heavy,
+                      marks=() if (head, sample, strategy) in FAST else pytest.mark.heavy,
                       id=f"{head}-{sample}-{strategy}")
          for head in HEADS for sample in SAMPLES for strategy in ("epa", "graph")]
 

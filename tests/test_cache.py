@@ -24,7 +24,10 @@ from ncfix.collision.head import build_head_model, build_sphere_tree, cached_hea
 from ncfix.collision.near import NearSurface, cached_near_surface
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
-CASES = Path(__file__).parent / "cases" / "fix"
+GOLDEN = Path(__file__).parent / "golden"
+FIX_IJK = GOLDEN / "fix_ijk" / "input.nc"  # a wall beside a straight path (tests/golden/fix_ijk)
+FIX_IJK_SETTINGS = {"machine": "ijk", "head": str(SAMPLES / "deposition_head.stl"),
+                    "part": [str(GOLDEN / "meshes" / "wall_x.stl")], "bead_radius": 0.0, "strategy": "graph"}
 
 
 def _l_shape() -> trimesh.Trimesh:
@@ -220,20 +223,17 @@ def test_a_damaged_or_keyless_cache_file_is_rebuilt_with_a_notice(tmp_path, capl
     assert path.name == f"grid-{key}.npz"  # rewritten, with its key
 
 
+@pytest.mark.heavy  # two end-to-end checks from cold; test_swapped_cache_files_are_rebuilt_with_a_notice is the fast one
 def test_a_check_from_swapped_cache_files_is_the_cold_check(tmp_path, monkeypatch, caplog):
     """The issue's case end to end: a warm cache whose two grid files (the part's and the clipped
     head's) were swapped gives the cold run's colliding blocks (trusted by name, the swapped grids
     gave fewer), plus a notice for each."""
-    sys.path.insert(0, str(CASES))
-    import make_cases
-    from ncfix.profiles import load_profile
-
     folder = tmp_path / "cache"
     monkeypatch.setenv("NCFIX_CACHE", str(folder))
-    settings = {**make_cases.settings(load_profile("ijk")), "bead_radius": 1.0, "check": True}
+    settings = {**FIX_IJK_SETTINGS, "bead_radius": 1.0, "check": True}
 
     def check() -> list:
-        return ncfix.process(CASES / "fix_ijk.nc", io.BytesIO(), **settings).collisions
+        return ncfix.process(FIX_IJK, io.BytesIO(), **settings).collisions
 
     cold = check()
     first, second = _files(folder, "grid")
@@ -364,13 +364,9 @@ def test_the_default_folder_comes_from_ncfix_cache(tmp_path, monkeypatch):
 
 
 def _fix_ijk(folder: Path, monkeypatch) -> tuple[bytes, list]:
-    sys.path.insert(0, str(CASES))
-    import make_cases
-    from ncfix.profiles import load_profile
-
     monkeypatch.setenv("NCFIX_CACHE", str(folder))
     out = io.BytesIO()
-    report = ncfix.process(CASES / "fix_ijk.nc", out, **make_cases.settings(load_profile("ijk")))
+    report = ncfix.process(FIX_IJK, out, **FIX_IJK_SETTINGS)
     return out.getvalue(), report.collisions
 
 
@@ -381,6 +377,7 @@ def _check_wall(folder: Path, monkeypatch) -> list:
     return report.collisions
 
 
+@pytest.mark.heavy  # two end-to-end fixes; the deposit check below is the fast end-to-end warm/cold case
 def test_a_fix_from_a_warm_cache_is_the_fix_from_a_cold_one(tmp_path, monkeypatch):
     folder = tmp_path / "cache"
     cold = _fix_ijk(folder, monkeypatch)
@@ -392,7 +389,7 @@ def test_a_fix_from_a_warm_cache_is_the_fix_from_a_cold_one(tmp_path, monkeypatc
     _no_build(monkeypatch, proximity_module, "build_arrays")
     warm = _fix_ijk(folder, monkeypatch)
     assert warm == cold
-    assert cold[0] == (CASES / "fix_ijk.expected.nc").read_bytes()
+    assert cold[0] == (GOLDEN / "fix_ijk" / "expected.out").read_bytes()
 
 
 def test_a_deposit_check_from_a_warm_cache_is_the_check_from_a_cold_one(tmp_path, monkeypatch):

@@ -58,6 +58,7 @@ def test_a_head_tip_that_is_not_the_lowest_point_is_refused(tmp_path):
     assert "the head reaches 30 mm below the tip (0, 0, 30) along the axis (0, 0, 1)" in done.stderr.decode()
 
 
+@pytest.mark.heavy  # the whole sample through the command line; test_geometry holds the message fast
 def test_a_part_far_from_the_toolpath_is_refused(tmp_path):
     import trimesh
 

@@ -6,6 +6,7 @@ import io
 from pathlib import Path
 
 import numpy as np
+import pytest
 import trimesh
 
 import ncfix
@@ -82,6 +83,7 @@ def test_a_block_no_tilt_frees_stays_programmed_while_its_neighbours_are_fixed(m
     assert stuck == []
 
 
+@pytest.mark.heavy  # an end-to-end fix; the test above is this module's fast one
 def test_the_blocks_held_by_one_left_colliding_are_left_with_it_and_the_rest_fixed(monkeypatch, tmp_path):
     # The pass and post of the test above, with the wall from x = -70 to 120: no tilt frees the
     # post's block (x = 0), so the wall's blocks after it, colliding as programmed, each start

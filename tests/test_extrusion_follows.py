@@ -18,7 +18,7 @@ from ncfix.pipeline import run
 
 HERE = Path(__file__).parent
 HEAD = HERE.parent / "samples" / "deposition_head.stl"
-WALL = HERE / "cases" / "fix" / "wall_x.stl"  # a box x -10..10, y 25..40: the head's body reaches it
+WALL = HERE / "golden" / "meshes" / "wall_x.stl"  # a box x -10..10, y 25..40: the head's body reaches it
 STANDOFF = 6.0
 STEP_MM = 4.0
 E_PER_MM = 0.05

@@ -367,7 +367,7 @@ def test_head_model_ball_sizes_follow_the_zones(sample_model):
         assert np.allclose(radii, 0.5 * np.sqrt(3) * 2**level * pitch, atol=1e-5)
 
 
-@pytest.mark.parametrize("pitch_mm", [0.5, 1.0])
+@pytest.mark.parametrize("pitch_mm", [0.5, pytest.param(1.0, marks=pytest.mark.heavy)])
 def test_head_model_covers_every_point_of_the_head(sample_head, pitch_mm):
     model = build_head_model(sample_head, pitch_mm)
     rng = np.random.default_rng(11)

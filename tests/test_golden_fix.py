@@ -1,27 +1,22 @@
-"""Golden correction cases, one per built-in machine profile (tests/cases/fix, made by its
-make_cases.py): ncfix turns each colliding input into exactly the expected output, the output is
-free (exact reference at every block, and ncfix finds nothing when run on it again), every step
-is within θ, every tilt within Θ, and the tip C stays where it was."""
+"""The golden correction cases, one per built-in machine profile (tests/golden/fix_<profile>, made
+by tests/golden/make_fix_cases.py): ncfix frees each colliding input (test_golden.py holds it to
+the expected bytes and to idempotence); here, what the output is: the words the fix checked are
+the words it wrote, only the reported lines changed, the output is free (exact reference at every
+block), every step is within θ, every tilt within Θ, and the tip C stays where it was."""
 
 from __future__ import annotations
 
-import io
-import sys
-from pathlib import Path
+import json
 
 import numpy as np
 import pytest
 
-import ncfix
 from ncfix.geometry.frames import angle_between_deg
 from ncfix.nc.modal import Interpreter
 from ncfix.profiles import load_profile
 
-CASES = Path(__file__).parent / "cases" / "fix"
-sys.path.insert(0, str(CASES))
-import make_cases  # noqa: E402
+import golden_cases
 
-pytestmark = pytest.mark.heavy
 STANDOFF = 6.0
 LEVER_MM = 250.0
 
@@ -39,14 +34,19 @@ def _poses(data: bytes, profile):
     return rows, P + STANDOFF * N, N, R
 
 
-@pytest.mark.parametrize("name, src", make_cases.case_files(), ids=[n for n, _ in make_cases.case_files()])
-def test_golden_fix(name, src, monkeypatch):
+def _flag(case, name: str) -> str:
+    """The value of a command-line flag of the case, a path made absolute."""
+    value = case.args[case.args.index(name) + 1]
+    return str((case.folder / value).resolve()) if name in ("--head", "--part") else value
+
+
+@pytest.mark.parametrize("case", golden_cases.params("fix_"))
+def test_golden_fix(case, tmp_path, monkeypatch):
     from ncfix.correct.stage import CorrectStage
 
-    profile = load_profile(name)
-    settings = make_cases.settings(profile)
-    expected = make_cases.expected_path(src).read_bytes()
-    data = src.read_bytes()
+    profile = load_profile(_flag(case, "--machine"))
+    expected = golden_cases.expected(case).out
+    data = case.input.read_bytes()
     table = {}  # line -> the words the fix checked later rows against (its table, as applied)
     apply = CorrectStage._apply
 
@@ -56,20 +56,20 @@ def test_golden_fix(name, src, monkeypatch):
             table[int(self.rows.line[row])] = self.rows.words[row].copy()
 
     monkeypatch.setattr(CorrectStage, "_apply", spy)
-    out = io.BytesIO()
-    report = ncfix.process(io.BytesIO(data), out, **settings)
-    assert out.getvalue() == expected, f"regenerate with {make_cases.__file__} --expected and review the diff"
+    got = golden_cases.run(case, tmp_path)
+    report = json.loads(got.report)
+    assert got.out == expected, f"regenerate with `python tests/golden/regen.py {case.name}` and review the diff"
     # The fix checked what it wrote: its table holds the words as the output states them, bit for bit.
     chunk = Interpreter(profile).feed_chunk(expected.splitlines(keepends=True), 1)
-    changed = {c["line"] for c in report.changes}
+    changed = {c["line"] for c in report["changes"]}
     assert changed and changed <= set(table)
     for line in changed:
         assert np.array_equal(table[line], chunk.words[line - 1], equal_nan=True), f"line {line}"
-    assert report.exit_code == 0 and report.summary["colliding_blocks_before"] > 0
+    assert got.exit == 0 and report["summary"]["colliding_blocks_before"] > 0
     before, after = data.splitlines(), expected.splitlines()
     assert len(before) == len(after)
     changed = [i + 1 for i, (a, b) in enumerate(zip(before, after)) if a != b]
-    assert changed == sorted(c["line"] for c in report.changes)
+    assert changed == sorted(c["line"] for c in report["changes"])
 
     # The output as a program: free, within θ and Θ, the tip where it was.
     rows0, C0, N0, _ = _poses(data, profile)
@@ -85,12 +85,11 @@ def test_golden_fix(name, src, monkeypatch):
     from ncfix.geometry.mesh import load_head, load_mesh
     from ncfix.reference import ExactReference
 
-    wall = settings["part"][0]
-    ref = ExactReference(load_head(settings["head"]).mesh, {"wall": load_mesh(wall, "part").mesh})
+    ref = ExactReference(load_head(_flag(case, "--head")).mesh, {"wall": load_mesh(_flag(case, "--part"), "part").mesh})
     assert not any(ref.collides(c, r) for c, r in zip(C1, R1))
 
-    # Idempotence: ncfix finds nothing to do in its own output.
-    again = io.BytesIO()
-    report2 = ncfix.process(io.BytesIO(expected), again, **settings)
-    assert again.getvalue() == expected
-    assert report2.summary["colliding_blocks_before"] == 0 and report2.exit_code == 0
+
+def test_every_built_in_profile_has_a_golden_fix_case():
+    from ncfix.profiles import builtin_names
+
+    assert sorted(case.name for case in golden_cases.cases("fix_")) == sorted(f"fix_{name}" for name in builtin_names())

@@ -24,6 +24,19 @@ def mold() -> trimesh.Trimesh:
     return load_mesh(MOLD, "part").mesh
 
 
+@pytest.fixture(scope="module")
+def mold_grid(mold):
+    """The mold's grid, as ncfix builds it (built once: two tests read it)."""
+    return build_distance_grid(mold, PITCH)
+
+
+@pytest.fixture(scope="module")
+def mold_points(mold):
+    """Points near the mold's surface (most within 1.5 mm, some within 4) and their exact distance."""
+    points = np.concatenate([_near_surface_points(mold, 4000, 1.5, 5), _near_surface_points(mold, 2000, 4.0, 6)])
+    return points, _true_distance(mold, points, True)
+
+
 def _sheet() -> trimesh.Trimesh:
     """An open, wavy surface (no inside): its surface is the body."""
     x, y = np.meshgrid(np.linspace(-30, 30, 13), np.linspace(-20, 20, 9), indexing="ij")
@@ -53,7 +66,7 @@ def _true_distance(mesh: trimesh.Trimesh, points: np.ndarray, closed: bool) -> n
 def test_surface_distances_are_exact(mold):
     rng = np.random.default_rng(3)
     lo, hi = mold.bounds
-    points = np.concatenate([_near_surface_points(mold, 3000, 2.0, 3),
+    points = np.concatenate([_near_surface_points(mold, 1500, 2.0, 3),
                              lo - 50 + rng.random((300, 3)) * (hi - lo + 100)])  # far ones read every triangle
     tris = np.asarray(mold.triangles, dtype=np.float64)
     got = surface_distances(tris, points, cap_mm=3.0)
@@ -63,18 +76,21 @@ def test_surface_distances_are_exact(mold):
 
 
 @pytest.mark.parametrize("case", ["closed", "open", "cropped"])
-def test_the_bound_stays_below_the_distance_and_is_within_2h_in_the_band(mold, case):
+def test_the_bound_stays_below_the_distance_and_is_within_2h_in_the_band(mold, mold_grid, mold_points, case):
     if case == "open":
-        mesh, closed, bounds = _sheet(), False, None
+        mesh = _sheet()
+        grid = build_distance_grid(mesh, PITCH, closed=False)
+        points = np.concatenate([_near_surface_points(mesh, 4000, 1.5, 5), _near_surface_points(mesh, 2000, 4.0, 6)])
+        true = _true_distance(mesh, points, False)
+    elif case == "closed":
+        grid, (points, true) = mold_grid, mold_points
     else:
-        mesh, closed = mold, True
         lo, hi = mold.bounds
-        bounds = np.array([lo + 0.15 * (hi - lo), hi - 0.15 * (hi - lo)]) if case == "cropped" else None
-    grid = build_distance_grid(mesh, PITCH, closed=closed, bounds_mm=bounds)
-    points = np.concatenate([_near_surface_points(mesh, 4000, 1.5, 5), _near_surface_points(mesh, 2000, 4.0, 6)])
-    if bounds is not None:
-        points = points[((points > bounds[0]) & (points < bounds[1])).all(axis=1)]
-    true = _true_distance(mesh, points, closed)
+        bounds = np.array([lo + 0.15 * (hi - lo), hi - 0.15 * (hi - lo)])
+        grid = build_distance_grid(mold, PITCH, closed=True, bounds_mm=bounds)
+        points, true = mold_points
+        kept = ((points > bounds[0]) & (points < bounds[1])).all(axis=1)
+        points, true = points[kept], true[kept]
     bound = grid.lower_bound_np(points)
     assert (bound <= true + 1e-9).all()
     # A point 2h .. band - 2h outside: its nearest cell centre is outside, farther than h from the
@@ -85,11 +101,10 @@ def test_the_bound_stays_below_the_distance_and_is_within_2h_in_the_band(mold, c
     assert (true[band] - bound[band]).max() <= 2 * grid.margin_mm
 
 
-def test_without_the_exact_band_the_bound_is_looser(mold, monkeypatch):
+def test_without_the_exact_band_the_bound_is_looser(mold, mold_grid, mold_points, monkeypatch):
     """The band is what makes the 2h figure above true (the EDT alone is off by up to 4h)."""
-    points = _near_surface_points(mold, 3000, 1.5, 7)
-    true = _true_distance(mold, points, True)
-    tight = build_distance_grid(mold, PITCH).lower_bound_np(points)
+    points, true = mold_points
+    tight = mold_grid.lower_bound_np(points)
     monkeypatch.setattr(grid_module, "EXACT_BAND_MM", -1.0)
     monkeypatch.setattr(grid_module, "JITTER_SAFE_MM", np.inf)
     loose = build_distance_grid(mold, PITCH).lower_bound_np(points)

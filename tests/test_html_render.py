@@ -2,7 +2,7 @@
 
 Opt-in by what is installed: marked ``browser`` (``pytest -m browser`` runs only these) and
 skipped when /usr/bin/chromium is absent (Debian: ``apt-get install chromium``). The program is
-the golden ijk case of tests/cases/fix (a wall beside a straight path; ncfix tilts 41 blocks).
+the golden ijk case of tests/golden/fix_ijk (a wall beside a straight path; ncfix tilts 41 blocks).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import ncfix
 
 REPO = Path(__file__).resolve().parents[1]
 CHROMIUM = Path("/usr/bin/chromium")
-CASE = REPO / "tests" / "cases" / "fix"
+GOLDEN = REPO / "tests" / "golden"
 
 pytestmark = [pytest.mark.browser,
               pytest.mark.skipif(not CHROMIUM.exists(), reason="/usr/bin/chromium is not installed")]
@@ -32,8 +32,8 @@ def load_render_script():
 
 def test_report_of_the_golden_ijk_case_runs_its_script_without_errors(tmp_path):
     page = tmp_path / "report.html"
-    report = ncfix.process(CASE / "fix_ijk.nc", tmp_path / "out.nc", machine="ijk",
-                           head=str(REPO / "samples" / "deposition_head.stl"), part=[str(CASE / "wall_x.stl")],
+    report = ncfix.process(GOLDEN / "fix_ijk" / "input.nc", tmp_path / "out.nc", machine="ijk",
+                           head=str(REPO / "samples" / "deposition_head.stl"), part=[str(GOLDEN / "meshes" / "wall_x.stl")],
                            bead_radius=0.0, strategy="graph", html=str(page))
     assert report.exit_code == 0 and report.changes
     html = page.read_text(encoding="utf-8")

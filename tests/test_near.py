@@ -36,13 +36,22 @@ def _points(triangles, n, seed):
     return np.concatenate([pts, near])
 
 
-@pytest.mark.parametrize("cap_mm, cell_mm", [(2.5, 2.0), (1.0, 0.7)])
-def test_touch_matches_brute_force(solid, cap_mm, cell_mm):
-    pts = _points(solid, 4000, seed=3)
-    rng = np.random.default_rng(4)
-    radii = rng.uniform(0.05, 3.5, len(pts))  # some above the cap: every triangle is read there
+@pytest.fixture(scope="module")
+def brute(solid):
+    """4,500 points about the solid (a third of them within 0.6 mm of its surface), their distance to
+    it, whether they lie inside and their signed distance, by brute force (computed once: it is
+    most of this module's time)."""
+    pts = _points(solid, 3000, seed=8)
     d = point_mesh_distance(pts, solid)
     inside = winding_numbers(pts, solid) > 0.5
+    return pts, d, inside, np.where(inside, -d, d)
+
+
+@pytest.mark.parametrize("cap_mm, cell_mm", [(2.5, 2.0), (1.0, 0.7)])
+def test_touch_matches_brute_force(solid, brute, cap_mm, cell_mm):
+    pts, d, inside, _ = brute
+    rng = np.random.default_rng(4)
+    radii = rng.uniform(0.05, 3.5, len(pts))  # some above the cap: every triangle is read there
     near = NearSurface(solid, cap_mm, cell_mm)
     for check_inside in (True, False):
         first, tested = near.first_touch(pts, radii, np.full(len(pts), check_inside), np.arange(len(pts)), len(pts))
@@ -52,24 +61,20 @@ def test_touch_matches_brute_force(solid, cap_mm, cell_mm):
         assert truth.sum() > 0.1 * len(pts) and (~truth).sum() > 0.1 * len(pts)
 
 
-def test_touch_stops_each_group_at_its_first_touching_ball(solid):
-    pts = _points(solid, 600, seed=5)
+def test_touch_stops_each_group_at_its_first_touching_ball(solid, brute):
+    pts, d, inside, _ = brute
     radii = np.full(len(pts), 1.0)
-    group = np.arange(len(pts)) // 15  # 60 groups of 15
-    d = point_mesh_distance(pts, solid)
-    inside = winding_numbers(pts, solid) > 0.5
+    group, groups = np.arange(len(pts)) // 15, len(pts) // 15  # groups of 15
     touch = (d <= radii) | inside
-    first, _ = NearSurface(solid, 2.0).first_touch(pts, radii, np.ones(len(pts), bool), group, 60)
-    for g in range(60):
+    first, _ = NearSurface(solid, 2.0).first_touch(pts, radii, np.ones(len(pts), bool), group, groups)
+    for g in range(groups):
         members = np.nonzero(group == g)[0]
         hits = members[touch[members]]
         assert first[g] == (hits[0] if len(hits) else -1)
 
 
-def test_signed_distance_matches_brute_force(solid):
-    pts = _points(solid, 3000, seed=7)
-    d = point_mesh_distance(pts, solid)
-    sd = np.where(winding_numbers(pts, solid) > 0.5, -d, d)
+def test_signed_distance_matches_brute_force(solid, brute):
+    pts, _, _, sd = brute
     near = NearSurface(solid, 2.0)
     got = np.array([_signed_distance(p[0], p[1], p[2], False, near.triangles, near.lo, near.cell_mm, near.dims,
                                      near.cap_mm, near.start, near.listed, near.sign_lo, near.sign_pitch,
@@ -78,16 +83,14 @@ def test_signed_distance_matches_brute_force(solid):
     assert (sd < -1.0).sum() > 100 and (np.abs(sd) < 0.3).sum() > 100  # deep inside and at the surface
 
 
-def test_depth_bound_holds_and_is_tight(solid):
+def test_depth_bound_holds_and_is_tight(solid, brute):
     """Minus ``depth_bound`` never exceeds the signed distance (brute force), inside and out, and
     lies within one and a half sign-cell diagonals of it inside (the nearest outside centre is at
     most a diagonal past the surface, the point half one from its centre): what lets the
     deepest-bead search stop early."""
     from ncfix.collision.near import depth_bound
 
-    pts = _points(solid, 6000, seed=8)
-    d = point_mesh_distance(pts, solid)
-    sd = np.where(winding_numbers(pts, solid) > 0.5, -d, d)
+    pts, _, _, sd = brute
     near = NearSurface(solid, 2.0)
     bound = -np.array([depth_bound(p[0], p[1], p[2], near.sign_lo, near.sign_pitch, near.depth) for p in pts])
     assert (bound <= sd).all()
@@ -96,14 +99,12 @@ def test_depth_bound_holds_and_is_tight(solid):
     assert (sd[inside] - bound[inside] <= 1.5 * np.sqrt(3.0) * near.sign_pitch + 1e-3).all()
 
 
-def test_signed_distance_below_a_threshold(solid):
+def test_signed_distance_below_a_threshold(solid, brute):
     """``_signed_distance_below`` gives the exact signed distance where it is below the threshold
     and the threshold itself elsewhere (outside points, and inside ones no deeper than it)."""
     from ncfix.collision.near import _signed_distance_below
 
-    pts = _points(solid, 3000, seed=9)
-    d = point_mesh_distance(pts, solid)
-    sd = np.where(winding_numbers(pts, solid) > 0.5, -d, d)
+    pts, _, _, sd = brute
     below = np.random.default_rng(10).uniform(-5.0, -0.05, len(pts))
     near = NearSurface(solid, 2.0)
     args = (near.triangles, near.lo, near.cell_mm, near.dims, near.cap_mm, near.start, near.listed, near.sign_lo,

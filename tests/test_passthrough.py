@@ -1,4 +1,5 @@
-"""With nothing to fix, ncfix is an exact pass-through: corpus programs and golden case files."""
+"""With nothing to fix, ncfix is an exact pass-through: corpus programs and random text (the
+golden pass-through cases: tests/golden/passthrough_*, run by test_golden.py)."""
 
 from __future__ import annotations
 
@@ -16,8 +17,6 @@ from ncfix.errors import NcfixError
 from ncfix.pipeline import run
 
 from conftest import CORPUS, corpus_programs
-
-CASES = Path(__file__).parent / "cases"
 
 # The profile each corpus program is read with (others use the default, ijk).
 CORPUS_MACHINES = {
@@ -54,37 +53,6 @@ def test_corpus_through_the_command_line_check():
     assert done.returncode == 0, done.stderr
     assert done.stdout == path.read_bytes()
     assert done.stderr == b""
-
-
-def read_case(path: Path):
-    """A golden case: line 1 `; ncfix FLAGS`, the input, then optionally `; output` and the expected output."""
-    text = path.read_bytes().decode("latin-1")
-    header, _, rest = text.partition("\n")
-    assert header.startswith("; ncfix"), path
-    flags = header[len("; ncfix"):].split()
-    marker = "; output\n"
-    if marker in rest:
-        source, expected = rest.split(marker, 1)
-    else:
-        source, expected = rest, rest
-    return flags, source.encode("latin-1"), expected.encode("latin-1")
-
-
-def options_from_flags(flags):
-    out = {}
-    it = iter(flags)
-    for flag in it:
-        key = flag.lstrip("-").replace("-", "_")
-        out[key] = True if key in ("check",) else next(it)
-    return out
-
-
-@pytest.mark.parametrize("path", sorted(CASES.glob("*.nc")), ids=lambda p: p.stem)
-def test_golden_cases(path):
-    flags, source, expected = read_case(path)
-    options = options_from_flags(flags)
-    assert passthrough(source, **options) == expected
-    assert passthrough(expected, **options) == expected  # stable: running again changes nothing
 
 
 SAFE_LINES = st.sampled_from([

@@ -10,8 +10,9 @@ ends, long lines and values no controller accepts (``nan``, ``1e999``, ``1.2.3``
   streamed before the error);
 - without ``--head`` the output is the input; with it, the output has the input's lines.
 
-The command line runs in this process (``ncfix.cli.main`` with standard streams swapped), so
-about 1,100 examples take a few minutes. Most run without a head; a fraction with a small head and
+The command line runs in this process (``ncfix.cli.main`` with standard streams swapped). Each
+property runs twice: all its examples in CI's heavy step (1,060 in all, a few minutes) and the first
+tenth of them in the README's fast run. Most run without a head; a fraction with a small head and
 plate, and a set of broken meshes.
 
 Every run on every machine tries the same examples in the same order, so a failure in CI is a
@@ -59,6 +60,15 @@ COMMON = dict(derandomize=True, deadline=None, database=None, print_blob=True,
               phases=[Phase.explicit, Phase.reuse, Phase.generate],
               suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
                                      HealthCheck.filter_too_much, HealthCheck.large_base_example])
+
+
+def both_runs(examples: int, **strategies):
+    """A property as two tests: ``examples`` examples, marked heavy (CI's second step), and a tenth
+    of them for the fast run. Returns (heavy test, fast test)."""
+    def make(body):
+        full = pytest.mark.heavy(settings(max_examples=examples, **COMMON)(given(**strategies)(body)))
+        return full, settings(max_examples=max(1, examples // 10), **COMMON)(given(**strategies)(body))
+    return make
 
 
 # -- running the command line in this process ---------------------------------------------------
@@ -287,10 +297,7 @@ def same_examples_everywhere(workdir):
             providers.CONSTANTS_CACHE.cache.clear()
 
 
-@settings(max_examples=600, **COMMON)
-@given(case=profile_and_program(), check=st.booleans(), quiet=st.booleans(), via_stdin=st.booleans(),
-       to_file=st.booleans(), other_machine=st.sampled_from([None] * 4 + sorted(PROFILES)))
-def test_any_program_without_a_head(workdir, case, check, quiet, via_stdin, to_file, other_machine):
+def any_program_without_a_head(workdir, case, check, quiet, via_stdin, to_file, other_machine):
     name, program = case
     src = workdir / "in.nc"
     src.write_bytes(program)
@@ -308,13 +315,20 @@ def test_any_program_without_a_head(workdir, case, check, quiet, via_stdin, to_f
     assert not [p for p in workdir.iterdir() if p.name.endswith(".tmp")]
 
 
-@settings(max_examples=300, **COMMON)
-@given(case=profile_and_program(clean=True), options=option_args(), check=st.booleans())
-def test_any_options_without_a_head(workdir, case, options, check):
+test_any_program_without_a_head, test_any_program_without_a_head_fast = both_runs(
+    600, case=profile_and_program(), check=st.booleans(), quiet=st.booleans(), via_stdin=st.booleans(),
+    to_file=st.booleans(), other_machine=st.sampled_from([None] * 4 + sorted(PROFILES)))(any_program_without_a_head)
+
+
+def any_options_without_a_head(workdir, case, options, check):
     name, program = case
     argv = ["-", "--machine", name, "-q", *options] + (["--check"] if check else [])
     status, out, err, runtime = run_cli(argv, program)
     assert_honest(status, out, err, runtime, program, check=check, quiet=True, passthrough=True, argv=argv)
+
+
+test_any_options_without_a_head, test_any_options_without_a_head_fast = both_runs(
+    300, case=profile_and_program(clean=True), options=option_args(), check=st.booleans())(any_options_without_a_head)
 
 
 # -- with a small head and plate -----------------------------------------------------------------
@@ -344,10 +358,7 @@ def head_case(draw):
     return name, program
 
 
-@settings(max_examples=100, **COMMON)
-@given(case=head_case(), check=st.booleans(), strategy=st.sampled_from(["epa", "graph"]),
-       bead=st.sampled_from(["0", "0.5"]), pivot=st.sampled_from(["tip", "point"]), step=st.sampled_from(["2", "30"]))
-def test_any_program_with_a_small_head(workdir, meshes, case, check, strategy, bead, pivot, step):
+def any_program_with_a_small_head(workdir, meshes, case, check, strategy, bead, pivot, step):
     name, program = case
     head, part = meshes
     argv = ["-", "--machine", name, "-q", "--head", str(head), "--part", str(part), "--pitch", "1",
@@ -355,6 +366,12 @@ def test_any_program_with_a_small_head(workdir, meshes, case, check, strategy, b
     argv += ["--check"] if check else []
     status, out, err, runtime = run_cli(argv, program)
     assert_honest(status, out, err, runtime, program, check=check, quiet=True, passthrough=False, argv=argv)
+
+
+test_any_program_with_a_small_head, test_any_program_with_a_small_head_fast = both_runs(
+    100, case=head_case(), check=st.booleans(), strategy=st.sampled_from(["epa", "graph"]),
+    bead=st.sampled_from(["0", "0.5"]), pivot=st.sampled_from(["tip", "point"]),
+    step=st.sampled_from(["2", "30"]))(any_program_with_a_small_head)
 
 
 # -- meshes ----------------------------------------------------------------------------------------
@@ -404,10 +421,7 @@ def mesh_bytes(draw):
         return trimesh.exchange.stl.export_stl(built), suffix
 
 
-@settings(max_examples=60, **COMMON)
-@given(mesh=mesh_bytes(), role=st.sampled_from(["--head", "--part"]), check=st.booleans(),
-       tip=st.sampled_from([None, "0,0,0", "0,0,-6"]))
-def test_any_mesh(workdir, meshes, mesh, role, check, tip):
+def any_mesh(workdir, meshes, mesh, role, check, tip):
     data, suffix = mesh
     path = workdir / f"m{suffix}"
     path.write_bytes(data)
@@ -417,3 +431,8 @@ def test_any_mesh(workdir, meshes, mesh, role, check, tip):
     argv += ["--head-tip", tip] if tip and role == "--head" else []
     status, out, err, runtime = run_cli(argv, MESH_PROGRAM)
     assert_honest(status, out, err, runtime, MESH_PROGRAM, check=check, quiet=True, passthrough=False, argv=argv)
+
+
+test_any_mesh, test_any_mesh_fast = both_runs(
+    60, mesh=mesh_bytes(), role=st.sampled_from(["--head", "--part"]), check=st.booleans(),
+    tip=st.sampled_from([None, "0,0,0", "0,0,-6"]))(any_mesh)

@@ -35,29 +35,19 @@ def test_programs_are_made_deterministically(tmp_path):
         assert path.read_bytes() == (SAMPLES / path.name).read_bytes(), path.name
 
 
-def sample_cases(heavy: bool):
-    module = make_samples()
-    return [pytest.param(*case, id=case[0]) for case in module.SAMPLES if ("5000" in case[0]) == heavy]
+def sample_cases():
+    return [pytest.param(*case, id=case[0]) for case in make_samples().SAMPLES]
 
 
-def check_labels(name, machine, parts, codes):
+@pytest.mark.heavy  # the exact reference at every block of a sample: 15-45 s each on the small ones
+@pytest.mark.parametrize("name, machine, parts, codes", sample_cases())
+def test_reference_labels_match_the_samples_readme(name, machine, parts, codes):
     module = make_samples()
     counts, lines = readme_labels()
     labels = module.reference_labels(name, machine, parts, codes)
     assert module.label_counts(labels) == counts[name]
     if name in lines:
         assert [line for line, _ in labels] == lines[name]
-
-
-@pytest.mark.parametrize("name, machine, parts, codes", sample_cases(heavy=False))
-def test_reference_labels_match_the_samples_readme(name, machine, parts, codes):
-    check_labels(name, machine, parts, codes)
-
-
-@pytest.mark.heavy
-@pytest.mark.parametrize("name, machine, parts, codes", sample_cases(heavy=True))
-def test_reference_labels_of_the_5000_point_samples(name, machine, parts, codes):
-    check_labels(name, machine, parts, codes)
 
 
 def test_bathtub_collides_on_10_to_30_percent_of_its_blocks():
@@ -72,6 +62,7 @@ def test_deposit_sample_collides_only_with_deposit():
     assert total > 0 and parts == 0 and deposit_only == total
 
 
+@pytest.mark.heavy
 def test_every_colliding_block_of_bathtub_273_is_fixable_within_30_degrees():
     """Tilting about the tip within Θ = 30° frees every colliding block, mold and beads alike."""
     module = make_samples()
