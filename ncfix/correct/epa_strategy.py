@@ -1,10 +1,11 @@
 """The ``--strategy epa`` correction: tilt each colliding block along its GJK/EPA extraction vector, then ramp.
 
 Four parts, in this order: the required tilts (``EpaModel.tilt`` until ``Episode.free`` accepts),
-the ramps between them as offsets carried along the programmed path (``fill_offsets``,
-``keep_chain``), the verification rounds (tilt further, pin, give up), and the orientation graph
-on the episodes the walk leaves colliding. Approximate by design: the walk is greedy; every kept
-orientation passed the conservative checker. Design: docs/correction.md, "The walk's four parts".
+the ramps between them as offsets carried along the programmed path (``OffsetFrames``,
+``fill_offsets``, ``keep_chain``), the verification rounds (tilt further, pin, give up), and the
+orientation graph on the episodes the walk leaves colliding. Approximate by design: the walk is
+greedy; every kept orientation passed the conservative checker.
+Design: docs/correction.md, "The walk's four parts".
 """
 
 from __future__ import annotations
@@ -131,8 +132,7 @@ class EpaStrategy:
         self.solve_seconds += seconds
         self.last = {"levels": len(ep.rows), "colliding": int(np.count_nonzero(ep.is_colliding)),
                      "unresolved": len(solution.unresolved), "left_by_epa": left_by_epa, "by_graph": by_graph,
-                     "rounds": solver.rounds, "searches": solver.searches, "tests": ep.tests,
-                     **solver.settles, "seconds": round(seconds, 4)}
+                     **solver.stats(), "seconds": round(seconds, 4)}
         return solution
 
 
@@ -259,7 +259,7 @@ class _Rounds:
     """The rounds' progress: the best answer so far (words, colliding levels, levels left
     colliding among them), layouts made, rounds since the best fell, the caps, give-ups."""
 
-    words: object
+    words: np.ndarray
     bad: np.ndarray
     left: np.ndarray
     layouts: int = 0
@@ -270,8 +270,14 @@ class _Rounds:
 
 
 class _EpisodeSolver:
-    """The state of one episode's solve (``EpaStrategy.solve``): the required tilts, then rounds of
-    lay out, test the ramps, re-check, pin or bump (``run``); the offsets' set-up is ``frames``."""
+    """The state of one episode's solve (``EpaStrategy.solve``).
+
+    ``run``: the required tilts (step 1), then rounds (``_round``) of: lay the offsets out within
+    the budgets, settling conflicts between fixed levels (step 2); test the ramp levels, re-check
+    the episode, pin or give up the levels left colliding, bump the failing ones (step 3). The
+    offsets' set-up (frames, fixed ends, budgets) is ``frames`` (``OffsetFrames``); the answer is
+    ``_solution`` (rows left colliding, with reasons), what it took is ``stats``.
+    """
 
     def __init__(self, strategy: EpaStrategy, model: EpaModel, ep):
         self.s = strategy
@@ -298,9 +304,9 @@ class _EpisodeSolver:
         self._reach_mm = model.head_reach_mm + model.bead_radius_mm
         self.fallback = True  # the answer is the program as written (no verified solution yet)
 
-    # -- the solve -------------------------------------------------------------------------------
+    # -- the rounds -----------------------------------------------------------------------------
     def run(self) -> Solution:
-        """The required tilts, then rounds (``_round``) until they stop; the best answer kept."""
+        """The required tilts, then passes (``_round``) until they stop; the best answer kept."""
         self._required()
         bad = self.ep.is_colliding.copy()
         rounds = _Rounds(self.ep.programmed.copy(), bad, self._left_mask() & bad)
@@ -309,9 +315,10 @@ class _EpisodeSolver:
         return self._solution(rounds)
 
     def _round(self, r: _Rounds) -> bool:
-        """One round: lay the offsets out, test the ramp levels (a failing one gets its own tilt and
-        the layout is made again), re-check the episode, then pin the tilted levels left colliding,
-        keep the answer if it is the best, give up or bump the failing levels. False: stop."""
+        """One pass: lay the offsets out and test the ramp levels; where one fails, it gets its own
+        tilt and the pass ends there (the next lays out again, within ``layout_cap``). Else a
+        round: re-check the episode, then pin the tilted levels left colliding, or keep the answer
+        if it is the best and give up or bump the failing levels. False: stop."""
         d = self._layout()
         r.layouts += 1
         if r.layouts < r.layout_cap and self._test_ramps(d):
@@ -379,57 +386,7 @@ class _EpisodeSolver:
         r.stale = 0
         return True
 
-    def _solution(self, r: _Rounds) -> Solution:
-        """The best answer kept, its colliding blocks' rows and why each is left."""
-        ep = self.ep
-        rows = [int(ep.rows[i]) for i in np.nonzero(r.bad)[0]]
-        reasons = {int(ep.rows[i]): self._reason(i, r.bad, r.left) for i in np.nonzero(r.bad)[0]}
-        return Solution(r.words, rows, reasons)
-
-    @staticmethod
-    def _held(left: np.ndarray, bad: np.ndarray) -> np.ndarray:
-        """``left`` with every colliding level whose move starts at a level left colliding (a
-        move that starts at a pose left colliding collides whatever its end), and the colliding
-        levels after it in a row (their moves start where it is pinned: left with it)."""
-        out = left.copy()
-        for i in range(1, len(out)):
-            out[i] |= bad[i] & out[i - 1]
-        return out
-
-    def _left_mask(self) -> np.ndarray:
-        out = np.zeros(self.L, dtype=bool)
-        out[list(self.hopeless) + list(self.dropped) + list(self.gave_up)] = True
-        return out
-
-    def _pin(self, level: int, why: str | None = None) -> None:
-        """Fix a level at its programmed orientation for good (offset 0, never moved: ramps bend
-        around it or stop at it); ``why``: it is given up, left colliding for that reason."""
-        self._fix(level, np.zeros(2))
-        self.holds.add(level)
-        if why is not None:
-            self.gave_up[level] = why
-
-    def _reason(self, i: int, bad: np.ndarray, left: np.ndarray | None = None) -> str:
-        if i in self.hopeless:
-            return self.hopeless[i]
-        if i in self.dropped:
-            return self.dropped[i]
-        if i in self.gave_up and not self.fallback:
-            return self.gave_up[i]
-        if i > 0 and bad[i - 1] and left is not None and left[i - 1]:
-            return "its move starts at the block before, which is left colliding"
-        if self.fallback:
-            return (f"no EPA tilt within {self.s.max_tilt:g}° (--max-tilt), ramped in "
-                    f"{self.s.max_step:g}° steps (--max-step), kept every block around it free; "
-                    "the episode is left as programmed")
-        return self._stuck(i)
-
-    def _stuck(self, i: int) -> str:
-        """Why a level still colliding with a tilt after the rounds is given up."""
-        what = "the move into it" if i in self.end_free else "its sweep or the solution's own beads"
-        return (f"still collides ({what}) after {self.rounds} rounds of larger EPA tilts within "
-                f"{self.s.max_tilt:g}° (--max-tilt); left as programmed")
-
+    # -- step 1: the required tilts -------------------------------------------------------------
     def _required(self) -> None:
         """Step 1: the EPA tilt of every colliding level, from its programmed orientation."""
         levels = [int(l) for l in np.nonzero(self.ep.is_colliding)[0]]
@@ -444,7 +401,7 @@ class _EpisodeSolver:
             else:  # free as programmed: only the move into it collides (the re-check tilts it)
                 self.end_free.add(l)
 
-    # -- step 2: offsets within the step budgets --------------------------------------------------
+    # -- step 2: offsets within the step budgets ------------------------------------------------
     def _layout(self) -> np.ndarray:
         """(L, 2) offsets through the fixed ones, every measured step within its limit."""
         return self.frames.within_limits(self._resolve)
@@ -545,17 +502,7 @@ class _EpisodeSolver:
             self._settle_failed.add(key)
         return found
 
-    def _fix(self, level: int, offset: np.ndarray) -> None:
-        self.fixed[level] = offset
-
-    def _drop(self, level: int) -> None:
-        self.settles["dropped"] += 1
-        tilt = np.degrees(np.linalg.norm(self.fixed.pop(level)))
-        if self.ep.is_colliding[level]:
-            self.dropped[level] = (f"a free orientation exists ({tilt:.1f}° from programmed), but none was found "
-                                   f"within {self.s.max_step:g}° steps (--max-step) of its neighbours'")
-
-    # -- step 3: verification -----------------------------------------------------------------
+    # -- step 3: verification -------------------------------------------------------------------
     def _test_ramps(self, d: np.ndarray) -> bool:
         """Test the ramp levels' end poses; a failing one gets a new fixed offset. True if any did."""
         norms = np.linalg.norm(d, axis=1)
@@ -634,6 +581,73 @@ class _EpisodeSolver:
         u = (self.frames.Q[k].T @ e)[:2]
         norm = float(np.linalg.norm(u))
         return u / norm if norm > _TINY_RAD else None
+
+    # -- the levels' state ----------------------------------------------------------------------
+    def _fix(self, level: int, offset: np.ndarray) -> None:
+        self.fixed[level] = offset
+
+    def _pin(self, level: int, why: str | None = None) -> None:
+        """Fix a level at its programmed orientation for good (offset 0, never moved: ramps bend
+        around it or stop at it); ``why``: it is given up, left colliding for that reason."""
+        self._fix(level, np.zeros(2))
+        self.holds.add(level)
+        if why is not None:
+            self.gave_up[level] = why
+
+    def _drop(self, level: int) -> None:
+        self.settles["dropped"] += 1
+        tilt = np.degrees(np.linalg.norm(self.fixed.pop(level)))
+        if self.ep.is_colliding[level]:
+            self.dropped[level] = (f"a free orientation exists ({tilt:.1f}° from programmed), but none was found "
+                                   f"within {self.s.max_step:g}° steps (--max-step) of its neighbours'")
+
+    def _left_mask(self) -> np.ndarray:
+        out = np.zeros(self.L, dtype=bool)
+        out[list(self.hopeless) + list(self.dropped) + list(self.gave_up)] = True
+        return out
+
+    @staticmethod
+    def _held(left: np.ndarray, bad: np.ndarray) -> np.ndarray:
+        """``left`` with every colliding level whose move starts at a level left colliding (a
+        move that starts at a pose left colliding collides whatever its end), and the colliding
+        levels after it in a row (their moves start where it is pinned: left with it)."""
+        out = left.copy()
+        for i in range(1, len(out)):
+            out[i] |= bad[i] & out[i - 1]
+        return out
+
+    # -- the result -----------------------------------------------------------------------------
+    def _solution(self, r: _Rounds) -> Solution:
+        """The best answer kept, its colliding blocks' rows and why each is left."""
+        ep = self.ep
+        rows = [int(ep.rows[i]) for i in np.nonzero(r.bad)[0]]
+        reasons = {int(ep.rows[i]): self._reason(i, r.bad, r.left) for i in np.nonzero(r.bad)[0]}
+        return Solution(r.words, rows, reasons)
+
+    def stats(self) -> dict:
+        """What the solve took: rounds, walks, end-pose tests and the settles' outcomes."""
+        return {"rounds": self.rounds, "searches": self.searches, "tests": self.ep.tests, **self.settles}
+
+    def _reason(self, i: int, bad: np.ndarray, left: np.ndarray | None = None) -> str:
+        if i in self.hopeless:
+            return self.hopeless[i]
+        if i in self.dropped:
+            return self.dropped[i]
+        if i in self.gave_up and not self.fallback:
+            return self.gave_up[i]
+        if i > 0 and bad[i - 1] and left is not None and left[i - 1]:
+            return "its move starts at the block before, which is left colliding"
+        if self.fallback:
+            return (f"no EPA tilt within {self.s.max_tilt:g}° (--max-tilt), ramped in "
+                    f"{self.s.max_step:g}° steps (--max-step), kept every block around it free; "
+                    "the episode is left as programmed")
+        return self._stuck(i)
+
+    def _stuck(self, i: int) -> str:
+        """Why a level still colliding with a tilt after the rounds is given up."""
+        what = "the move into it" if i in self.end_free else "its sweep or the solution's own beads"
+        return (f"still collides ({what}) after {self.rounds} rounds of larger EPA tilts within "
+                f"{self.s.max_tilt:g}° (--max-tilt); left as programmed")
 
     # -- the EPA walk and the tests ------------------------------------------------------------
     def _search(self, l: int, start: np.ndarray | None = None, balls: list[tuple[np.ndarray, float]] | None = None):
