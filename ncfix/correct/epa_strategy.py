@@ -1,10 +1,11 @@
 """The ``--strategy epa`` correction: tilt each colliding block along its GJK/EPA extraction vector, then ramp.
 
 Four parts, in this order: the required tilts (``EpaModel.tilt`` until ``Episode.free`` accepts),
-the ramps between them as offsets carried along the programmed path (``fill_offsets``,
-``keep_chain``), the verification rounds (tilt further, pin, give up), and the orientation graph
-on the episodes the walk leaves colliding. Approximate by design: the walk is greedy; every kept
-orientation passed the conservative checker. Design: docs/correction.md, "The walk's four parts".
+the ramps between them as offsets carried along the programmed path (``OffsetFrames``,
+``fill_offsets``, ``keep_chain``), the verification rounds (tilt further, pin, give up), and the
+orientation graph on the episodes the walk leaves colliding. Approximate by design: the walk is
+greedy; every kept orientation passed the conservative checker.
+Design: docs/correction.md, "The walk's four parts".
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from __future__ import annotations
 import os
 import sys
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -130,46 +132,43 @@ class EpaStrategy:
         self.solve_seconds += seconds
         self.last = {"levels": len(ep.rows), "colliding": int(np.count_nonzero(ep.is_colliding)),
                      "unresolved": len(solution.unresolved), "left_by_epa": left_by_epa, "by_graph": by_graph,
-                     "rounds": solver.rounds, "searches": solver.searches, "tests": ep.tests,
-                     **solver.settles, "seconds": round(seconds, 4)}
+                     **solver.stats(), "seconds": round(seconds, 4)}
         return solution
 
 
-class _EpisodeSolver:
-    """The state of one episode's solve (``EpaStrategy.solve``)."""
+class OffsetFrames:
+    """The layout of one episode's offsets: frames, fixed ends and step budgets (the set-up).
 
-    def __init__(self, strategy: EpaStrategy, model: EpaModel, ep):
-        self.s = strategy
-        self.model = model
-        self.ep = ep
+    An orientation at level l is an offset (2,) radians from the programmed N0_l in the frame
+    ``Q[l]`` (z axis N0_l), carried along the programmed path: as the program turns where the step
+    limit is relative (``turn``), by the minimal rotation elsewhere, so a constant offset follows
+    the program. Step entries j = 0..L: the step into level j (j = 0: from the pose before), j = L:
+    into the row after; ``limit_deg`` is each one's limit, ``base`` and ``safe`` its budgets.
+    """
+
+    def __init__(self, ep):
         self.L = L = len(ep.rows)
-        self.max_tilt_rad = np.radians(strategy.max_tilt)
-        self.N0 = ep.N0 / np.linalg.norm(ep.N0, axis=1, keepdims=True)
-        self.rounds = 0
-        self.searches = 0
-        # settle outcomes: conflicts, moved by the walk, moved by the grid, dropped levels
-        self.settles = {"conflicts": 0, "walk": 0, "grid": 0, "dropped": 0}
-        # Step entries j = 0..L: the step into level j (j = 0: from the pose before), j = L: into
-        # the row after. ``_turn[j]`` maps the previous programmed orientation as the program turns
-        # (the identity where the absolute step is limited).
+        self.N0 = N0 = ep.N0 / np.linalg.norm(ep.N0, axis=1, keepdims=True)
+        # ``turn[j]`` maps the previous programmed orientation as the program turns (the identity
+        # where the absolute step is limited).
         n = len(ep.limits)
         turning = np.zeros(L + 1, dtype=bool)
         turning[:n] = ep.turning
-        self._turn = np.tile(np.eye(3), (L + 1, 1, 1))
+        self.turn = np.tile(np.eye(3), (L + 1, 1, 1))
         if turning.any():
-            self._turn[:n][turning[:n]] = ep.turns[turning[:n]]
+            self.turn[:n][turning[:n]] = ep.turns[turning[:n]]
         limit = np.full(L + 1, 180.0)
         limit[:n] = np.where(turning[:n], ep.step_limits, ep.limits)
-        self._limit_deg = limit
+        self.limit_deg = limit
         # Frames: Q_l's z axis is N0_l; carried as the program turns, or by the minimal rotation.
         Q = np.empty((L, 3, 3))
-        Q[0] = rotation_from_z(self.N0[0])
+        Q[0] = rotation_from_z(N0[0])
         own = np.zeros(L + 1)
         for j in range(1, L):
-            own[j] = float(angle_between_deg(self.N0[j], self.N0[j - 1]))
-            carry = self._turn[j] if turning[j] else rotation_between(self.N0[j - 1], self.N0[j])
+            own[j] = float(angle_between_deg(N0[j], N0[j - 1]))
+            carry = self.turn[j] if turning[j] else rotation_between(N0[j - 1], N0[j])
             q = carry @ Q[j - 1]
-            Q[j] = rotation_between(q[:, 2], self.N0[j]) @ q  # remove the rounding drift
+            Q[j] = rotation_between(q[:, 2], N0[j]) @ q  # remove the rounding drift
         self.Q = Q
         # The fixed ends, each in the frame of its neighbouring level, so that the bound
         # |Δoffset| >= step is exact there: the pose before as written, the row after as programmed.
@@ -177,10 +176,10 @@ class _EpisodeSolver:
         self.N_before = self.N_after = None
         if ep.before_words is not None and limit[0] < 180.0:
             self.N_before = ep.N_before
-            self.anchors[-1] = _log(Q[0], self._turn[0] @ self.N_before)
+            self.anchors[-1] = _log(Q[0], self.turn[0] @ self.N_before)
         if ep.after_row is not None and limit[L] < 180.0:
             self.N_after = ep.N_after
-            self.anchors[L] = _log(Q[L - 1], self._turn[L].T @ self.N_after)
+            self.anchors[L] = _log(Q[L - 1], self.turn[L].T @ self.N_after)
         # Budgets (radians): optimistic at the limit; ``safe`` holds whatever the offsets do (the
         # frames turn by ``own`` where the absolute step is limited).
         base = np.radians(np.maximum(limit - _MARGIN_DEG, 0.0))
@@ -193,14 +192,111 @@ class _EpisodeSolver:
             base[L] = safe[L] = 0.0
         self.base, self.safe = base, safe
         # Where the bound is not exact (the frame turns by ``own`` under the offsets).
-        self._own_deg = np.where(turning, 0.0, own)
+        self.own_deg = np.where(turning, 0.0, own)
+
+    def normals(self, d: np.ndarray, levels: np.ndarray | None = None) -> np.ndarray:
+        """Tool vectors of offsets d (m, 2) at levels (all by default); a zero offset is N0 exactly."""
+        levels = np.arange(self.L) if levels is None else np.asarray(levels)
+        out = self.N0[levels].copy()
+        for i, l in enumerate(levels):
+            if np.linalg.norm(d[i]) > _TINY_RAD:
+                out[i] = _exp(self.Q[l], d[i])
+        return out
+
+    def steps(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(L + 1,) each step of these offsets as the limits measure it (degrees; turned by the
+        program where it turns), and (L + 1,) the change of the offsets there (radians); 0 for
+        an entry that links nothing (no pose before, or no row after)."""
+        L = self.L
+        N = self.normals(d)
+        prev, nxt = np.vstack([N[:1], N[:-1]]), N
+        d_prev = np.vstack([d[:1], d[:-1]])
+        if self.N_before is not None:
+            prev[0], d_prev[0] = self.N_before, self.anchors[-1]
+        if self.N_after is not None:
+            prev, nxt = np.vstack([prev, N[-1:]]), np.vstack([nxt, self.N_after[None]])
+        k = len(nxt)
+        step = np.zeros(L + 1)
+        step[:k] = angle_between_deg(nxt, np.einsum("nij,nj->ni", self.turn[:k], prev))
+        change = np.zeros(L + 1)
+        change[:L] = np.linalg.norm(d - d_prev, axis=1)
+        if self.N_after is not None:
+            change[L] = np.linalg.norm(self.anchors[L] - d[-1])
+        if self.N_before is None:
+            step[0] = change[0] = 0.0
+        return step, change
+
+    def within_limits(self, resolve) -> np.ndarray:
+        """(L, 2) offsets laid out by ``resolve`` (budgets -> offsets, or None when the fixed ones
+        cannot be joined), every measured step within its limit.
+
+        A step whose offsets change by δ measures s(δ), own at δ = 0 (the program's own step),
+        and s is convex in δ, so the chord through (0, own) and (δ, s) never underestimates it:
+        an over-limit budget becomes the δ where that chord meets the limit. After
+        ``BUDGET_ROUNDS`` such rounds, a budget still over takes its safe value (always within).
+        """
+        budgets = self.base.copy()
+        for attempt in range(BUDGET_ROUNDS + self.L + 2):
+            d = resolve(budgets)
+            if d is None:  # the two ends alone cannot be joined (cannot happen: they are ≤ θ apart)
+                return np.zeros((self.L, 2))
+            step, change = self.steps(d)
+            over = step > self.limit_deg
+            if not over.any():
+                return d
+            if attempt < BUDGET_ROUNDS:
+                own = self.own_deg[over]
+                rise = np.maximum(step[over] - own, 1e-9)
+                chord = np.minimum(budgets[over], change[over]) * (self.limit_deg[over] - _MARGIN_DEG - own) / rise
+                budgets[over] = np.maximum(self.safe[over], np.minimum(budgets[over], chord) * (1.0 - 1e-6))
+            else:
+                budgets[over] = self.safe[over]
+        return d
+
+
+@dataclass
+class _Rounds:
+    """The rounds' progress: the best answer so far (words, colliding levels, levels left
+    colliding among them), layouts made, rounds since the best fell, the caps, give-ups."""
+
+    words: np.ndarray
+    bad: np.ndarray
+    left: np.ndarray
+    layouts: int = 0
+    stale: int = 0
+    round_cap: int = ROUNDS
+    layout_cap: int = MAX_LAYOUTS
+    giveups: int = 0
+
+
+class _EpisodeSolver:
+    """The state of one episode's solve (``EpaStrategy.solve``).
+
+    ``run``: the required tilts (step 1), then rounds (``_round``) of: lay the offsets out within
+    the budgets, settling conflicts between fixed levels (step 2); test the ramp levels, re-check
+    the episode, pin or give up the levels left colliding, bump the failing ones (step 3). The
+    offsets' set-up (frames, fixed ends, budgets) is ``frames`` (``OffsetFrames``); the answer is
+    ``_solution`` (rows left colliding, with reasons), what it took is ``stats``.
+    """
+
+    def __init__(self, strategy: EpaStrategy, model: EpaModel, ep):
+        self.s = strategy
+        self.model = model
+        self.ep = ep
+        self.frames = OffsetFrames(ep)
+        self.L = self.frames.L
+        self.max_tilt_rad = np.radians(strategy.max_tilt)
+        self.rounds = 0
+        self.searches = 0
+        # settle outcomes: conflicts, moved by the walk, moved by the grid, dropped levels
+        self.settles = {"conflicts": 0, "walk": 0, "grid": 0, "dropped": 0}
         # Level state: required (fixed) offsets, levels left colliding, with why.
         self.fixed: dict[int, np.ndarray] = {}
         self.end_free: set[int] = set()  # colliding only through the move into them (free end pose)
         self.hopeless: dict[int, str] = {}  # no free orientation within Θ along E
         self.dropped: dict[int, str] = {}  # free orientations, none within the steps of its neighbours
         self.gave_up: dict[int, str] = {}  # still colliding after the rounds: left as programmed
-        self.fails = np.zeros(L, dtype=np.int64)  # re-check failures per level
+        self.fails = np.zeros(self.L, dtype=np.int64)  # re-check failures per level
         self._free_cache: dict[tuple, bool] = {}
         self._settle_failed: set[tuple] = set()
         self.holds: set[int] = set()  # fixed at the programmed orientation for good (``_hold``)
@@ -208,114 +304,89 @@ class _EpisodeSolver:
         self._reach_mm = model.head_reach_mm + model.bead_radius_mm
         self.fallback = True  # the answer is the program as written (no verified solution yet)
 
-    # -- the solve -------------------------------------------------------------------------------
-    def run(self):
-        ep = self.ep
+    # -- the rounds -----------------------------------------------------------------------------
+    def run(self) -> Solution:
+        """The required tilts, then passes (``_round``) until they stop; the best answer kept."""
         self._required()
-        best_words, best_bad = ep.programmed.copy(), ep.is_colliding.copy()
-        best_left = self._left_mask() & best_bad
-        layouts = 0
-        stale = 0  # rounds since the best fell
-        round_cap, layout_cap = ROUNDS, MAX_LAYOUTS
-        giveups = 0
-        while True:
-            d = self._layout()
-            layouts += 1
-            # Ramp levels that fail get their own tilt, and the layout is made again.
-            if layouts < layout_cap and self._test_ramps(d):
-                continue
-            self.rounds += 1
-            changed = np.linalg.norm(d, axis=1) > _TINY_RAD
-            words = ep.words_of(self._normals(d), ~changed)
-            bad = ep.recheck(words)
-            left = self._held(self._left_mask(), bad)
-            _debug(f"epa round {self.rounds}: {int(bad.sum())} colliding ({int((bad & ~ep.is_colliding).sum())} new), "
-                   f"{int(left.sum())} left, fixed {len(self.fixed)}, dropped {len(self.dropped)}, "
-                   f"hopeless {len(self.hopeless)}, searches {self.searches}, new at {np.nonzero(bad & ~ep.is_colliding)[0].tolist()} "
-                   f"(after a block left colliding: {np.nonzero(bad & ~ep.is_colliding & left)[0].tolist()})")
-            # Blocks left colliding are left as programmed (docs/contract.md): one that a ramp passes
-            # through (a dropped level, a block whose move starts at one left colliding) is pinned
-            # at its programmed orientation for good, and the ramps are laid out around it again.
-            tilted = bad & left & changed
-            if tilted.any():
-                for l in np.nonzero(tilted)[0].tolist():
-                    # Where the pinned pose collides itself, so does every move out of it: the
-                    # level after is pinned with it, and so on (else one round each).
-                    self._pin(l)
-                    while l + 1 < self.L and not self.ep.programmed_free()[l] and l + 1 not in self.holds:
-                        l += 1
-                        self._pin(l)
-                continue
-            # Never hand back a solution that makes a block collide that did not, unless its move
-            # starts at a block left colliding (as GraphStrategy; the stage reports it), nor one
-            # whose colliding blocks are not as programmed.
-            if not (bad & ~ep.is_colliding & ~left).any() and not (bad & changed).any() and bad.sum() < best_bad.sum():
-                best_words, best_bad, best_left, self.fallback = words, bad, left & bad, False
-                stale = 0
-            elif not self.fallback:  # patience runs once there is an answer to keep
-                stale += 1
-            retry = bad & ~left
-            if not retry.any() or self.rounds >= round_cap or layouts >= layout_cap or stale >= PATIENCE:
-                # Blocks still colliding with a tilt: give them up (pinned at the programmed
-                # orientation, reported unresolved) and lay the rest out around them.
-                stuck = retry & changed
-                if not stuck.any() or giveups >= GIVEUPS:
-                    break
-                giveups += 1
-                for l in np.nonzero(stuck)[0]:
-                    self._pin(int(l), self._stuck(int(l)))
-                round_cap, layout_cap = self.rounds + GIVEUP_ROUNDS, layouts + 2 * GIVEUP_ROUNDS
-                stale = 0
-                continue
-            self._bump(np.nonzero(retry)[0], d)
-        rows = [int(ep.rows[i]) for i in np.nonzero(best_bad)[0]]
-        reasons = {int(ep.rows[i]): self._reason(i, best_bad, best_left) for i in np.nonzero(best_bad)[0]}
-        return Solution(best_words, rows, reasons)
+        bad = self.ep.is_colliding.copy()
+        rounds = _Rounds(self.ep.programmed.copy(), bad, self._left_mask() & bad)
+        while self._round(rounds):
+            pass
+        return self._solution(rounds)
 
-    @staticmethod
-    def _held(left: np.ndarray, bad: np.ndarray) -> np.ndarray:
-        """``left`` with every colliding level whose move starts at a level left colliding (a
-        move that starts at a pose left colliding collides whatever its end), and the colliding
-        levels after it in a row (their moves start where it is pinned: left with it)."""
-        out = left.copy()
-        for i in range(1, len(out)):
-            out[i] |= bad[i] & out[i - 1]
-        return out
+    def _round(self, r: _Rounds) -> bool:
+        """One pass: lay the offsets out and test the ramp levels; where one fails, it gets its own
+        tilt and the pass ends there (the next lays out again, within ``layout_cap``). Else a
+        round: re-check the episode, then pin the tilted levels left colliding, or keep the answer
+        if it is the best and give up or bump the failing levels. False: stop."""
+        d = self._layout()
+        r.layouts += 1
+        if r.layouts < r.layout_cap and self._test_ramps(d):
+            return True
+        self.rounds += 1
+        changed = np.linalg.norm(d, axis=1) > _TINY_RAD
+        words, bad, left = self._recheck(d, changed)
+        # Blocks left colliding are left as programmed (docs/contract.md): one that a ramp passes
+        # through (a dropped level, a block whose move starts at one left colliding) is pinned
+        # at its programmed orientation for good, and the ramps are laid out around it again.
+        tilted = bad & left & changed
+        if tilted.any():
+            self._pin_left(tilted)
+            return True
+        self._keep_best(r, words, bad, left, changed)
+        retry = bad & ~left
+        if not retry.any() or self.rounds >= r.round_cap or r.layouts >= r.layout_cap or r.stale >= PATIENCE:
+            return self._give_up(r, retry & changed)
+        self._bump(np.nonzero(retry)[0], d)
+        return True
 
-    def _left_mask(self) -> np.ndarray:
-        out = np.zeros(self.L, dtype=bool)
-        out[list(self.hopeless) + list(self.dropped) + list(self.gave_up)] = True
-        return out
+    def _recheck(self, d: np.ndarray, changed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(words, colliding, left) of the episode with offsets d: the whole episode re-checked
+        (sweeps, the solution's own beads); ``left``: the levels left colliding (``_held``)."""
+        ep = self.ep
+        words = ep.words_of(self.frames.normals(d), ~changed)
+        bad = ep.recheck(words)
+        left = self._held(self._left_mask(), bad)
+        _debug(f"epa round {self.rounds}: {int(bad.sum())} colliding ({int((bad & ~ep.is_colliding).sum())} new), "
+               f"{int(left.sum())} left, fixed {len(self.fixed)}, dropped {len(self.dropped)}, "
+               f"hopeless {len(self.hopeless)}, searches {self.searches}, new at {np.nonzero(bad & ~ep.is_colliding)[0].tolist()} "
+               f"(after a block left colliding: {np.nonzero(bad & ~ep.is_colliding & left)[0].tolist()})")
+        return words, bad, left
 
-    def _pin(self, level: int, why: str | None = None) -> None:
-        """Fix a level at its programmed orientation for good (offset 0, never moved: ramps bend
-        around it or stop at it); ``why``: it is given up, left colliding for that reason."""
-        self._fix(level, np.zeros(2))
-        self.holds.add(level)
-        if why is not None:
-            self.gave_up[level] = why
+    def _pin_left(self, tilted: np.ndarray) -> None:
+        """Pin the tilted levels left colliding at their programmed orientation. Where the pinned
+        pose collides itself, so does every move out of it: the level after is pinned with it, and
+        so on (else one round each)."""
+        for l in np.nonzero(tilted)[0].tolist():
+            self._pin(l)
+            while l + 1 < self.L and not self.ep.programmed_free()[l] and l + 1 not in self.holds:
+                l += 1
+                self._pin(l)
 
-    def _reason(self, i: int, bad: np.ndarray, left: np.ndarray | None = None) -> str:
-        if i in self.hopeless:
-            return self.hopeless[i]
-        if i in self.dropped:
-            return self.dropped[i]
-        if i in self.gave_up and not self.fallback:
-            return self.gave_up[i]
-        if i > 0 and bad[i - 1] and left is not None and left[i - 1]:
-            return "its move starts at the block before, which is left colliding"
-        if self.fallback:
-            return (f"no EPA tilt within {self.s.max_tilt:g}° (--max-tilt), ramped in "
-                    f"{self.s.max_step:g}° steps (--max-step), kept every block around it free; "
-                    "the episode is left as programmed")
-        return self._stuck(i)
+    def _keep_best(self, r: _Rounds, words, bad: np.ndarray, left: np.ndarray, changed: np.ndarray) -> None:
+        """Keep this round's answer if it leaves fewer blocks colliding. Never hand back a solution
+        that makes a block collide that did not, unless its move starts at a block left colliding
+        (as GraphStrategy; the stage reports it), nor one whose colliding blocks are not as programmed."""
+        if not (bad & ~self.ep.is_colliding & ~left).any() and not (bad & changed).any() and bad.sum() < r.bad.sum():
+            r.words, r.bad, r.left, self.fallback = words, bad, left & bad, False
+            r.stale = 0
+        elif not self.fallback:  # patience runs once there is an answer to keep
+            r.stale += 1
 
-    def _stuck(self, i: int) -> str:
-        """Why a level still colliding with a tilt after the rounds is given up."""
-        what = "the move into it" if i in self.end_free else "its sweep or the solution's own beads"
-        return (f"still collides ({what}) after {self.rounds} rounds of larger EPA tilts within "
-                f"{self.s.max_tilt:g}° (--max-tilt); left as programmed")
+    def _give_up(self, r: _Rounds, stuck: np.ndarray) -> bool:
+        """The rounds are over: blocks still colliding with a tilt are given up (pinned at the
+        programmed orientation, reported unresolved) and the rest laid out around them with
+        ``GIVEUP_ROUNDS`` more rounds, at most ``GIVEUPS`` times. False: stop."""
+        if not stuck.any() or r.giveups >= GIVEUPS:
+            return False
+        r.giveups += 1
+        for l in np.nonzero(stuck)[0]:
+            self._pin(int(l), self._stuck(int(l)))
+        r.round_cap, r.layout_cap = self.rounds + GIVEUP_ROUNDS, r.layouts + 2 * GIVEUP_ROUNDS
+        r.stale = 0
+        return True
 
+    # -- step 1: the required tilts -------------------------------------------------------------
     def _required(self) -> None:
         """Step 1: the EPA tilt of every colliding level, from its programmed orientation."""
         levels = [int(l) for l in np.nonzero(self.ep.is_colliding)[0]]
@@ -330,39 +401,17 @@ class _EpisodeSolver:
             else:  # free as programmed: only the move into it collides (the re-check tilts it)
                 self.end_free.add(l)
 
-    # -- step 2: offsets within the step budgets --------------------------------------------------
+    # -- step 2: offsets within the step budgets ------------------------------------------------
     def _layout(self) -> np.ndarray:
-        """(L, 2) offsets through the fixed ones, every measured step within its limit.
-
-        A step whose offsets change by δ measures s(δ), own at δ = 0 (the program's own step),
-        and s is convex in δ, so the chord through (0, own) and (δ, s) never underestimates it:
-        an over-limit budget becomes the δ where that chord meets the limit. After
-        ``BUDGET_ROUNDS`` such rounds, a budget still over takes its safe value (always within).
-        """
-        budgets = self.base.copy()
-        for attempt in range(BUDGET_ROUNDS + self.L + 2):
-            d = self._resolve(budgets)
-            if d is None:  # the two ends alone cannot be joined (cannot happen: they are ≤ θ apart)
-                return np.zeros((self.L, 2))
-            step, change = self._steps(d)
-            over = step > self._limit_deg
-            if not over.any():
-                return d
-            if attempt < BUDGET_ROUNDS:
-                own = self._own_deg[over]
-                rise = np.maximum(step[over] - own, 1e-9)
-                chord = np.minimum(budgets[over], change[over]) * (self._limit_deg[over] - _MARGIN_DEG - own) / rise
-                budgets[over] = np.maximum(self.safe[over], np.minimum(budgets[over], chord) * (1.0 - 1e-6))
-            else:
-                budgets[over] = self.safe[over]
-        return d
+        """(L, 2) offsets through the fixed ones, every measured step within its limit."""
+        return self.frames.within_limits(self._resolve)
 
     def _resolve(self, budgets: np.ndarray) -> np.ndarray | None:
         """Offsets filled between the fixed ones; where two are too far apart, the larger wins.
         Each settle moves a level (at most ``MAX_MOVES`` times per level) or drops one, so this ends."""
         moves = np.zeros(self.L, dtype=np.int64)
         while True:
-            points = {**self.anchors, **self.fixed}
+            points = {**self.frames.anchors, **self.fixed}
             d, conflict = fill_offsets(points, budgets, self.L)
             if conflict is None:
                 return d
@@ -403,7 +452,7 @@ class _EpisodeSolver:
         counts 0 (let go, it is a ramp level again: keeping such levels on ties constrains the
         ramps and frees fewer blocks on the bathtub sample)."""
         keys = sorted(points)
-        must = [k in self.anchors or k in self.holds for k in keys]
+        must = [k in self.frames.anchors or k in self.holds for k in keys]
         gain = [int(not m and 0 <= k < self.L and bool(self.ep.is_colliding[k])) for k, m in zip(keys, must)]
         keep = keep_chain([points[k] for k in keys], [pos[k + 1] for k in keys], must, gain)
         for i, k in enumerate(keys):
@@ -445,7 +494,7 @@ class _EpisodeSolver:
             grid = grid[keep]
             if len(grid):
                 grid = grid[np.argsort(np.linalg.norm(grid - offset, axis=1), kind="stable")]
-                free = self.ep.free(np.full(len(grid), s), self._normals(grid, np.full(len(grid), s)))
+                free = self.ep.free(np.full(len(grid), s), self.frames.normals(grid, np.full(len(grid), s)))
                 if free.any():
                     found = grid[np.flatnonzero(free)[0]]
                     self.settles["grid"] += 1
@@ -453,40 +502,7 @@ class _EpisodeSolver:
             self._settle_failed.add(key)
         return found
 
-    def _fix(self, level: int, offset: np.ndarray) -> None:
-        self.fixed[level] = offset
-
-    def _drop(self, level: int) -> None:
-        self.settles["dropped"] += 1
-        tilt = np.degrees(np.linalg.norm(self.fixed.pop(level)))
-        if self.ep.is_colliding[level]:
-            self.dropped[level] = (f"a free orientation exists ({tilt:.1f}° from programmed), but none was found "
-                                   f"within {self.s.max_step:g}° steps (--max-step) of its neighbours'")
-
-    def _steps(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(L + 1,) each step of these offsets as the limits measure it (degrees; turned by the
-        program where it turns), and (L + 1,) the change of the offsets there (radians); 0 for
-        an entry that links nothing (no pose before, or no row after)."""
-        L = self.L
-        N = self._normals(d)
-        prev, nxt = np.vstack([N[:1], N[:-1]]), N
-        d_prev = np.vstack([d[:1], d[:-1]])
-        if self.N_before is not None:
-            prev[0], d_prev[0] = self.N_before, self.anchors[-1]
-        if self.N_after is not None:
-            prev, nxt = np.vstack([prev, N[-1:]]), np.vstack([nxt, self.N_after[None]])
-        k = len(nxt)
-        step = np.zeros(L + 1)
-        step[:k] = angle_between_deg(nxt, np.einsum("nij,nj->ni", self._turn[:k], prev))
-        change = np.zeros(L + 1)
-        change[:L] = np.linalg.norm(d - d_prev, axis=1)
-        if self.N_after is not None:
-            change[L] = np.linalg.norm(self.anchors[L] - d[-1])
-        if self.N_before is None:
-            step[0] = change[0] = 0.0
-        return step, change
-
-    # -- step 3: verification -----------------------------------------------------------------
+    # -- step 3: verification -------------------------------------------------------------------
     def _test_ramps(self, d: np.ndarray) -> bool:
         """Test the ramp levels' end poses; a failing one gets a new fixed offset. True if any did."""
         norms = np.linalg.norm(d, axis=1)
@@ -495,7 +511,7 @@ class _EpisodeSolver:
         if not todo:
             return False
         levels = np.array(todo)
-        free = self.ep.free(levels, self._normals(d[levels], levels))
+        free = self.ep.free(levels, self.frames.normals(d[levels], levels))
         for l, ok in zip(todo, free):
             self._free_cache[_key(l, d[l])] = bool(ok)
         changed = False
@@ -556,15 +572,82 @@ class _EpisodeSolver:
         for j in (k - 1, k + 1):
             if 0 <= j < self.L and norms[j] > _TINY_RAD:
                 return d[j] / norms[j]
-        N = self._normals(d)
+        N = self.frames.normals(d)
         ep = self.ep
         C = 0.5 * (ep.C0[l - 1] + ep.C0[l]) if l > 0 else ep.C0[l]
         n = N[l - 1] + N[l] if l > 0 else N[l]
         n = n / np.linalg.norm(n)
         e = self.model.extraction_vector(C, self._rotation_of(l)(n[None])[0], self._beads(l)).vector
-        u = (self.Q[k].T @ e)[:2]
+        u = (self.frames.Q[k].T @ e)[:2]
         norm = float(np.linalg.norm(u))
         return u / norm if norm > _TINY_RAD else None
+
+    # -- the levels' state ----------------------------------------------------------------------
+    def _fix(self, level: int, offset: np.ndarray) -> None:
+        self.fixed[level] = offset
+
+    def _pin(self, level: int, why: str | None = None) -> None:
+        """Fix a level at its programmed orientation for good (offset 0, never moved: ramps bend
+        around it or stop at it); ``why``: it is given up, left colliding for that reason."""
+        self._fix(level, np.zeros(2))
+        self.holds.add(level)
+        if why is not None:
+            self.gave_up[level] = why
+
+    def _drop(self, level: int) -> None:
+        self.settles["dropped"] += 1
+        tilt = np.degrees(np.linalg.norm(self.fixed.pop(level)))
+        if self.ep.is_colliding[level]:
+            self.dropped[level] = (f"a free orientation exists ({tilt:.1f}° from programmed), but none was found "
+                                   f"within {self.s.max_step:g}° steps (--max-step) of its neighbours'")
+
+    def _left_mask(self) -> np.ndarray:
+        out = np.zeros(self.L, dtype=bool)
+        out[list(self.hopeless) + list(self.dropped) + list(self.gave_up)] = True
+        return out
+
+    @staticmethod
+    def _held(left: np.ndarray, bad: np.ndarray) -> np.ndarray:
+        """``left`` with every colliding level whose move starts at a level left colliding (a
+        move that starts at a pose left colliding collides whatever its end), and the colliding
+        levels after it in a row (their moves start where it is pinned: left with it)."""
+        out = left.copy()
+        for i in range(1, len(out)):
+            out[i] |= bad[i] & out[i - 1]
+        return out
+
+    # -- the result -----------------------------------------------------------------------------
+    def _solution(self, r: _Rounds) -> Solution:
+        """The best answer kept, its colliding blocks' rows and why each is left."""
+        ep = self.ep
+        rows = [int(ep.rows[i]) for i in np.nonzero(r.bad)[0]]
+        reasons = {int(ep.rows[i]): self._reason(i, r.bad, r.left) for i in np.nonzero(r.bad)[0]}
+        return Solution(r.words, rows, reasons)
+
+    def stats(self) -> dict:
+        """What the solve took: rounds, walks, end-pose tests and the settles' outcomes."""
+        return {"rounds": self.rounds, "searches": self.searches, "tests": self.ep.tests, **self.settles}
+
+    def _reason(self, i: int, bad: np.ndarray, left: np.ndarray | None = None) -> str:
+        if i in self.hopeless:
+            return self.hopeless[i]
+        if i in self.dropped:
+            return self.dropped[i]
+        if i in self.gave_up and not self.fallback:
+            return self.gave_up[i]
+        if i > 0 and bad[i - 1] and left is not None and left[i - 1]:
+            return "its move starts at the block before, which is left colliding"
+        if self.fallback:
+            return (f"no EPA tilt within {self.s.max_tilt:g}° (--max-tilt), ramped in "
+                    f"{self.s.max_step:g}° steps (--max-step), kept every block around it free; "
+                    "the episode is left as programmed")
+        return self._stuck(i)
+
+    def _stuck(self, i: int) -> str:
+        """Why a level still colliding with a tilt after the rounds is given up."""
+        what = "the move into it" if i in self.end_free else "its sweep or the solution's own beads"
+        return (f"still collides ({what}) after {self.rounds} rounds of larger EPA tilts within "
+                f"{self.s.max_tilt:g}° (--max-tilt); left as programmed")
 
     # -- the EPA walk and the tests ------------------------------------------------------------
     def _search(self, l: int, start: np.ndarray | None = None, balls: list[tuple[np.ndarray, float]] | None = None):
@@ -607,8 +690,8 @@ class _EpisodeSolver:
     def _walk(self, l: int, start: np.ndarray | None, balls: list[tuple[np.ndarray, float]] | None):
         """(tilt walk, level, allowed: (k, 3) normals -> (k,) bool (within Θ and the balls), frame Q)."""
         self.searches += 1
-        Q = self.Q[l]
-        n0 = self.N0[l]
+        Q = self.frames.Q[l]
+        n0 = self.frames.N0[l]
         start_n = n0 if start is None else _exp(Q, start)
         # The walk may cross the whole cap from its start, but never leaves the ball: no farther
         # than its diameter (every step outside would cost a hull test for nothing).
@@ -655,15 +738,6 @@ class _EpisodeSolver:
 
     def _cached(self, l: int, offset: np.ndarray) -> bool | None:
         return self._free_cache.get(_key(l, offset))
-
-    def _normals(self, d: np.ndarray, levels: np.ndarray | None = None) -> np.ndarray:
-        """Tool vectors of offsets d (m, 2) at levels (all by default); a zero offset is N0 exactly."""
-        levels = np.arange(self.L) if levels is None else np.asarray(levels)
-        out = self.N0[levels].copy()
-        for i, l in enumerate(levels):
-            if np.linalg.norm(d[i]) > _TINY_RAD:
-                out[i] = _exp(self.Q[l], d[i])
-        return out
 
 
 # -- offsets ---------------------------------------------------------------------------------------
