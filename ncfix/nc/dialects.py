@@ -8,6 +8,7 @@ testing the dialect's name, so what one controller does differently is read here
 from __future__ import annotations
 
 import re
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 
@@ -16,6 +17,8 @@ class Dialect:
     """How one controller family reads and writes blocks (the fields say what differs)."""
 
     name: str
+    # The posted program around its motion blocks: (blocks, title, number, vector, tcp) → lines.
+    post_frame: Callable[[list[str], str, int, bool, bool], Iterator[str]]
     # Keywords without a value that give a block its kind (Klartext `L X+1`, `C X+1 DR+`, `CC X+0`):
     # linear moves, arcs, and the pole of later arcs. A block of such a dialect without one is no move.
     linear_kinds: frozenset[str] = frozenset()
@@ -96,11 +99,48 @@ class Dialect:
         return f"{self.comment_prefix}{text}" if self.comment_prefix is not None else f"({text.upper()})"
 
 
-ISO = Dialect("iso", plain_words=True, star_checksum=True)
-SINUMERIK = Dialect("sinumerik", orientation_switch="TRAORI", named_joiner="=", star_checksum=True,
+def _iso_frame(body: list[str], title: str, number: int, vector: bool, tcp: bool) -> Iterator[str]:
+    """`%`, `O0001 (TITLE)`, N-numbered blocks with TCP on (G43.5 for a vector, G43.4 for angles)."""
+    tcp_code = "G43.5 H1" if vector else "G43.4 H1"
+    yield "%\n"
+    yield f"O{number:04d} ({title.upper()})\n"
+    yield "(POSTED FOR NCFIX SAMPLES: TIP POINTS, TCP ON)\n"
+    lines = ["G21 G90 G94 G17", "G54", tcp_code if tcp else "G49", *body, "G49", "M30"]
+    n = 0
+    for line in lines:
+        if line.startswith("("):
+            yield line + "\n"
+            continue
+        n += 10
+        yield f"N{n} {line}\n"
+    yield "%\n"
+
+
+def _siemens_frame(body: list[str], title: str, number: int, vector: bool, tcp: bool) -> Iterator[str]:
+    """An MPF: `; %_N_TITLE_MPF`, TRAORI with ORIVECT, N-numbered blocks."""
+    name = title.upper().replace(" ", "_")
+    head = [f"; %_N_{name}_MPF", f"; {title} (posted for ncfix samples)", "G17 G71 G90 G94", "TRAORI",
+            "ORIWKS", "ORIVECT"]
+    tail = ["TRAFOOF", "M30"]
+    for line in head[:2]:
+        yield line + "\n"
+    for i, line in enumerate(head[2:] + body + tail):
+        yield f"N{10 * (i + 1)} {line}\n"
+
+
+def _klartext_frame(body: list[str], title: str, number: int, vector: bool, tcp: bool) -> Iterator[str]:
+    """`BEGIN PGM TITLE MM` … `END PGM`, blocks numbered from 0, TCP by M128/M129."""
+    name = title.upper().replace(" ", "_")
+    lines = [f"BEGIN PGM {name} MM", "TOOL CALL 1 Z S0", "M128", *body, "M129", f"END PGM {name} MM"]
+    for i, line in enumerate(lines):
+        yield f"{i} {line}\n"
+
+
+ISO = Dialect("iso", _iso_frame, plain_words=True, star_checksum=True)
+SINUMERIK = Dialect("sinumerik", _siemens_frame, orientation_switch="TRAORI", named_joiner="=", star_checksum=True,
                     comment_prefix="; ")
 HEIDENHAIN = Dialect(
-    "heidenhain", linear_kinds=frozenset({"L", "LN"}), arc_kinds=frozenset({"C", "CR", "CT", "CP"}), pole_kind="CC",
+    "heidenhain", _klartext_frame, linear_kinds=frozenset({"L", "LN"}), arc_kinds=frozenset({"C", "CR", "CT", "CP"}), pole_kind="CC",
     pole_arc="C", radius_arc="CR", rapid_word="FMAX", initial_motion=1, incremental_prefix="I",
     unit_header="BEGIN PGM", function_word="FUNCTION", arc_sense_word=True, orientation_switch="LN", signed_numbers=True,
     vector_keyword=(re.compile(r"^(\s*\d*\s*)L(\s)"), r"\1LN\2"),

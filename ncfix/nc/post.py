@@ -66,36 +66,4 @@ def post_program(profile: Profile, points: np.ndarray, vectors: np.ndarray, *, t
     retract = points[-1] + approach_mm * vectors[-1]
     body.append(words_line(kin.inverse(retract, vectors[-1], previous, tcp=tcp), previous, "rapid"))
 
-    yield from _wrap(profile, body, title, number)
-
-
-def _wrap(profile: Profile, body: list[str], title: str, number: int) -> Iterator[str]:
-    dialect = profile.dialect
-    name = title.upper().replace(" ", "_")
-    if dialect == "heidenhain":
-        lines = [f"BEGIN PGM {name} MM", "TOOL CALL 1 Z S0", "M128", *body, "M129", f"END PGM {name} MM"]
-        for i, line in enumerate(lines):
-            yield f"{i} {line}\n"
-        return
-    if dialect == "sinumerik":
-        head = [f"; %_N_{name}_MPF", f"; {title} (posted for ncfix samples)", "G17 G71 G90 G94", "TRAORI",
-                "ORIWKS", "ORIVECT"]
-        tail = ["TRAFOOF", "M30"]
-        for line in head[:2]:
-            yield line + "\n"
-        for i, line in enumerate(head[2:] + body + tail):
-            yield f"N{10 * (i + 1)} {line}\n"
-        return
-    tcp_code = "G43.5 H1" if profile.is_vector else "G43.4 H1"
-    yield "%\n"
-    yield f"O{number:04d} ({title.upper()})\n"
-    yield "(POSTED FOR NCFIX SAMPLES: TIP POINTS, TCP ON)\n"
-    lines = ["G21 G90 G94 G17", "G54", tcp_code if profile.tcp != "never" else "G49", *body, "G49", "M30"]
-    n = 0
-    for line in lines:
-        if line.startswith("("):
-            yield line + "\n"
-            continue
-        n += 10
-        yield f"N{n} {line}\n"
-    yield "%\n"
+    yield from dialect.post_frame(body, title, number, profile.is_vector, profile.tcp != "never")
