@@ -21,9 +21,10 @@ from ncfix.kinematics.head_table import HeadTable
 from ncfix.kinematics.rotary import TwoAxisChain
 from ncfix.kinematics.table_table import TableTable
 from ncfix.kinematics.tool_vector import ToolVector
+from ncfix.nc.dialects import DIALECTS as DIALECT_RULES
 
 KINEMATICS = ("tool_vector", "table_table", "head_head", "head_table")
-DIALECTS = ("iso", "sinumerik", "heidenhain")
+DIALECTS = tuple(DIALECT_RULES)
 TCP_MODES = ("always", "never", "program")
 AXIS_MODES = ("continuous", "modulo", "limited")
 
@@ -133,7 +134,7 @@ def build_profile(data: dict[str, Any], where: str) -> Profile:
         angle=r.integer(fmt_data, "format.angle", 3, 0, 9),
         vector=r.integer(fmt_data, "format.vector", 6, 3, 12),
         force_decimal_point=r.boolean(fmt_data, "format.force_decimal_point", False),
-        force_sign=r.boolean(fmt_data, "format.force_sign", dialect == "heidenhain"),
+        force_sign=r.boolean(fmt_data, "format.force_sign", DIALECT_RULES[dialect].signed_numbers),
     )
     geometry = r.table("tcp_off_geometry")
     for key in set(geometry) - _GEOMETRY_KEYS[kin_name]:

@@ -299,3 +299,23 @@ def test_required_dependencies_have_no_import_fallbacks():
                     if name.split(".")[0] in REQUIRED:
                         bad.append(f"{module} line {node.lineno}: {name}")
     assert not bad, "fallbacks for required packages:\n  " + "\n  ".join(bad)
+
+
+def test_dialect_names_are_compared_only_in_the_dialects_module():
+    """What a controller family spells differently lives in ``ncfix.nc.dialects``: elsewhere code
+    asks the profile's Dialect, never ``profile.dialect == "heidenhain"``."""
+    modules = _modules()
+    names = {call.args[0].value for call in ast.walk(_tree(modules["ncfix.nc.dialects"]))
+             if isinstance(call, ast.Call) and ast.unparse(call.func) == "Dialect"}
+    assert names >= {"iso", "sinumerik", "heidenhain"}
+    bad = []
+    for module, path in modules.items():
+        if module == "ncfix.nc.dialects":
+            continue
+        for node in ast.walk(_tree(path)):
+            if isinstance(node, ast.Compare):
+                sides = [node.left, *node.comparators]
+                sides += [e for s in sides if isinstance(s, (ast.Tuple, ast.List, ast.Set)) for e in s.elts]
+                if any(isinstance(s, ast.Constant) and s.value in names for s in sides):
+                    bad.append(f"{module} line {node.lineno}: {ast.unparse(node)}")
+    assert not bad, "dialect names compared outside ncfix.nc.dialects:\n  " + "\n  ".join(bad)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import re
 
+from ncfix.nc.dialects import DIALECTS
 from ncfix.nc.lexer import decimals_of, split_eol, word_spans
 from ncfix.profiles import Profile
 
@@ -103,8 +104,7 @@ def rewrite_line(raw: str, profile: Profile, values: dict[str, float], required:
             text = format_value(values[letter], defaults[kind_of(letter)], like, fmt.force_sign,
                                 fmt.force_decimal_point, trim[kind_of(letter)] if like is not None else None)
             address = letter.lower() if lower else letter
-            joiner = "=" if profile.dialect == "sinumerik" and len(letter) > 1 else ""
-            pieces.append(f"{sep}{address}{joiner}{text}")
+            pieces.append(f"{sep}{address}{DIALECTS[profile.dialect].joiner(letter)}{text}")
         edits.append((anchor, anchor, "".join(pieces)))
 
     if not edits:
@@ -179,7 +179,7 @@ def _code_end(body: str) -> int:
 
 def _refresh_checksum(body: str, profile: Profile) -> str:
     """RepRap host checksums (`*93`): XOR of every byte before the `*` (not Heidenhain's `*`)."""
-    if profile.dialect == "heidenhain":
+    if not DIALECTS[profile.dialect].star_checksum:
         return body
     m = _CHECKSUM_RE.search(body)
     if not m:

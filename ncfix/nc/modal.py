@@ -17,6 +17,7 @@ import numpy as np
 
 from ncfix.nc.block import Block, ModalState
 from ncfix.nc.chunk import Chunk
+from ncfix.nc.dialects import DIALECTS
 from ncfix.nc.lexer import WORD_RE, code_of, parse_number
 from ncfix.nc.orientation import BlockWords, foreign_word_error, owned_words, vocabulary
 from ncfix.nc.plain_jit import PlainReaderJit
@@ -27,13 +28,11 @@ MM_PER_INCH = 25.4
 
 # G codes whose axis words are not a move to a workpiece point.
 _NON_MOTION_G = {4.0, 10.0, 28.0, 30.0, 53.0, 92.0, 28.1, 30.1, 92.1, 92.2, 92.3}
-_HEIDENHAIN_LINEAR = {"L", "LN"}
 _MIN_RUN = 8  # shorter runs of plain lines are cheaper one by one than as arrays
 # A position farther than this from the origin (mm) is a typo or a unit mistake, not a machine's
 # travel: `Y99999999999999999999` would otherwise be checked pitch by pitch (10^20 samples).
 TRAVEL_LIMIT_MM = 1.0e6
-_HEIDENHAIN_ARC = {"C", "CR", "CT", "CP"}
-# Words of an arc: centre offsets and radius (Siemens CR=).
+# Words of an arc: centre offsets and radius (Siemens CR=; Klartext CR is a block keyword, no value).
 _ARC_WORDS = {"I", "J", "K", "R", "CR"}
 # Non-finite values as float() would read them: `Xnan`, `Kinf`, `Xinfinity` (the lexer sees one
 # letter run). Longest first, so `XINFINITY` is not read as `XINFINI` + `TY`.
@@ -73,18 +72,21 @@ class Interpreter:
         self.vector_letters = set(kin.orientation_letters) if profile.is_vector else set()
         self.linear_index = {self.index["X"], self.index["Y"], self.index["Z"]}
         self.extrusion = profile.extrusion_letter
-        self.heidenhain = profile.dialect == "heidenhain"
+        self.dialect = dialect = DIALECTS[profile.dialect]
+        self._kinds = dialect.block_kinds  # empty: no block keywords (tested per word: a local set)
+        self._incremental_prefix = dialect.incremental_prefix
+        self._reads_text = dialect.reads_text
 
         self.words = [NAN] * self.nletters
         if profile.is_vector:  # a vertical tool until the program says otherwise
             for letter, value in zip(kin.orientation_letters, (0.0, 0.0, 1.0)):
                 self.words[self.index[letter]] = value
-        self.motion: int | None = 1 if self.heidenhain else None
+        self.motion: int | None = dialect.initial_motion
         self.incremental = False
         self.inch = False
         self.plane = 2  # G17: arcs in XY
         self.arc_centre_absolute = False  # G90.1 / G91.1
-        self.pole: tuple[float, float] | None = None  # Heidenhain CC (X, Y)
+        self.pole: tuple[float, float] | None = None  # the last pole (Klartext CC): X, Y
         self.feed_mode = 94
         self.e_relative = False
         self.e_value = 0.0
@@ -106,7 +108,7 @@ class Interpreter:
         plain_letters = tuple(dict.fromkeys(("N", "G", "F", self.extrusion, *kin.letters)))
         self._plain_cols = {letter: i for i, letter in enumerate(plain_letters)}
         self._plain_axis_cols = [self._plain_cols[letter] for letter in kin.letters]
-        self._fast_ok = profile.dialect == "iso" and all(len(letter) == 1 for letter in kin.letters)
+        self._fast_ok = dialect.plain_words and all(len(letter) == 1 for letter in kin.letters)
         self._plain = PlainReaderJit(plain_letters) if self._fast_ok else None
         # Orientation words of other profiles (ncfix.nc.orientation): an error, never ignored. Plain
         # lines hold only this profile's letters, so only the full reader looks for them.
@@ -274,8 +276,10 @@ class Interpreter:
         codes: list[tuple[str, float | str]] = []
         e_text: str | None = None
         opaque = False
-        heidenhain_kind = None
-        heidenhain_incremental: set[int] = set()
+        kind = None  # the block keyword of a dialect that has them (Klartext L, LN, C, CC ...)
+        kinds = self._kinds
+        prefix = self._incremental_prefix
+        incremental_words: set[int] = set()  # words incremental on this block only (Klartext IX)
         arc_words: dict[str, str] = {}
         suspects = self._foreign.suspects(pairs)
         for aname, avalue, addr, value in pairs:
@@ -300,14 +304,13 @@ class Interpreter:
                 except ValueError:
                     pass
                 continue
-            if self.heidenhain and heidenhain_kind is None and not value and (
-                    addr in _HEIDENHAIN_LINEAR or addr in _HEIDENHAIN_ARC or addr == "CC"):
-                heidenhain_kind = addr
+            if kinds and kind is None and not value and addr in kinds:
+                kind = addr
                 continue
             idx = self.index.get(addr)
-            if idx is None and self.heidenhain and len(addr) == 2 and addr[0] == "I" and addr[1:] in self.index:
+            if idx is None and prefix and len(addr) == 2 and addr[0] == prefix and addr[1:] in self.index:
                 idx = self.index[addr[1:]]
-                heidenhain_incremental.add(idx)
+                incremental_words.add(idx)
             if idx is not None:
                 if value and value.lstrip("+- \t")[:1] in ("#", "[", "Q"):
                     opaque = True
@@ -363,22 +366,16 @@ class Interpreter:
             elif key == ("M", 83.0):
                 self.e_relative = True
             self._switch(key)
-        if self.heidenhain:
-            upper = code.upper()
-            if "BEGIN PGM" in upper:
-                self.inch = upper.rstrip().endswith("INCH")
-            if "FUNCTION" in upper:
-                text = " ".join(upper.split())
-                self._switch(("TEXT", text[text.index("FUNCTION"):]))
-            if heidenhain_kind in _HEIDENHAIN_LINEAR:
-                self.motion = 0 if "FMAX" in upper else 1
-            elif heidenhain_kind in _HEIDENHAIN_ARC:
-                self.motion = 2
-            elif heidenhain_kind == "CC" or heidenhain_kind is None:
-                non_motion = True
+        if self._reads_text:
+            self.inch, text, motion, no_move = self.dialect.read_text(code.upper(), kind, self.inch)
+            if text is not None:
+                self._switch(("TEXT", text))
+            if motion is not None:
+                self.motion = motion
+            non_motion = non_motion or no_move
         if suspects:
             ms = [number for letter, number in codes if letter == "M"]
-            found = self._foreign.orienting(suspects, None if non_motion else self.motion, gs, ms, heidenhain_kind)
+            found = self._foreign.orienting(suspects, None if non_motion else self.motion, gs, ms, kind)
             if found:
                 raise foreign_word_error(*found[0], self.profile, f"{self.source}:{lineno}")
 
@@ -431,7 +428,7 @@ class Interpreter:
                     value *= scale
                 if g92:
                     new[idx] = value
-                elif self.incremental or idx in heidenhain_incremental:
+                elif self.incremental or idx in incremental_words:
                     new[idx] = new[idx] + value
                 else:
                     new[idx] = value
@@ -448,7 +445,7 @@ class Interpreter:
                     raise self._zero_vector(lineno)
                 for letter, value in zip(self.profile.kinematics.orientation_letters, comps):
                     new[self.index[letter]] = value
-            if heidenhain_kind == "CC":  # the pole of later C arcs; the machine does not move
+            if kind is not None and kind == self.dialect.pole_kind:  # the pole of later arcs; no move
                 end = [new[self.index[a]] for a in "XY"]
                 self.pole = (end[0], end[1]) if all(math.isfinite(v) for v in end) else None
                 for a, v in zip("XYZ", start):
@@ -459,13 +456,13 @@ class Interpreter:
                         new[idx] = NAN
             elif self.motion is not None:
                 block.motion = self.motion
-                if self.motion in (2, 3) or (self.heidenhain and heidenhain_kind in _HEIDENHAIN_ARC):
+                if self.motion in (2, 3) or kind in self.dialect.arc_kinds:
                     for addr, text in arc_words.items():  # "": an expression, the arc is not followed
                         if text and not _is_plain_number(text):
                             raise self._fail(lineno, f"the {addr} word '{addr}{text.strip()}' is not a number",
                                              "correct the arc's centre or radius in the program")
                     block.arc = self._arc(start, [new[self.index[a]] for a in "XYZ"], arc_words, code,
-                                          heidenhain_kind)
+                                          kind)
         block.opaque = opaque
         block.state = self._state()
         if block.motion is not None:
@@ -473,7 +470,7 @@ class Interpreter:
         return block
 
     def _arc(self, start: list[float], end: list[float], words: dict[str, str], code: str,
-             heidenhain_kind: str | None) -> tuple[float, float, float, int, int] | None:
+             kind: str | None) -> tuple[float, float, float, int, int] | None:
         """The arc of a G2/G3 (Heidenhain C/CR) block from ``start`` to ``end`` (mm), or None when
         ncfix cannot follow it.
 
@@ -486,7 +483,7 @@ class Interpreter:
         if not all(math.isfinite(v) for v in (*start, *end)) or "" in words.values():
             return None
         scale = MM_PER_INCH if self.inch else 1.0
-        if self.heidenhain:
+        if self.dialect.arc_sense_word:
             axis = 2
             dr = _DR_RE.search(code)
             if dr is None:
@@ -497,15 +494,15 @@ class Interpreter:
             sense = 1 if self.motion == 3 else -1
         a, b = _PLANE_AXES[axis]
         centre = list(start)
-        if self.heidenhain and heidenhain_kind == "C":
+        if kind is not None and kind == self.dialect.pole_arc:
             if self.pole is None:
                 return None
             centre[0], centre[1] = self.pole
-        elif not self.heidenhain and any(letter in words for letter in "IJK"):
+        elif not self.dialect.arc_sense_word and any(letter in words for letter in "IJK"):
             for k, letter in zip((a, b), ("IJK"[a], "IJK"[b])):
                 offset = parse_number(words[letter]) * scale if letter in words else 0.0
                 centre[k] = offset if self.arc_centre_absolute and letter in words else start[k] + offset
-        elif ("R" in words or "CR" in words) and (heidenhain_kind in (None, "CR")):
+        elif ("R" in words or "CR" in words) and (kind is None or kind == self.dialect.radius_arc):
             radius = parse_number(words.get("CR", words.get("R", "0"))) * scale
             da, db = end[a] - start[a], end[b] - start[b]
             chord = math.hypot(da, db)

@@ -15,11 +15,16 @@ from dataclasses import dataclass, field
 from typing import BinaryIO
 
 from ncfix.errors import ProgramError
+from ncfix.nc.dialects import DIALECTS
 from ncfix.nc.lexer import WORD_RE, code_of, parse_number
 from ncfix.profiles import Profile, builtin_names, load_profile
 
 # Words that switch on a controller's orientation programming, read by every profile of that dialect.
-DIALECT_WORDS = {"TRAORI": "sinumerik", "LN": "heidenhain"}
+DIALECT_WORDS = {d.orientation_switch: d.name for d in DIALECTS.values() if d.orientation_switch}
+# Block keywords of any dialect (Klartext L, LN, C ...), and those of linear moves: read before the
+# profile is known (--machine auto).
+_BLOCK_KINDS = frozenset().union(*(d.block_kinds for d in DIALECTS.values()))
+_LINEAR_KINDS = frozenset().union(*(d.linear_kinds for d in DIALECTS.values()))
 # Siemens orientation words that no built-in profile reads (Euler/RPY angles, lead and tilt).
 UNREAD = ("A2", "B2", "C2", "LEAD", "TILT")
 # G codes that give I J K another meaning than a tool vector (data, threads, rotations, cycles),
@@ -186,7 +191,7 @@ def scan(lines: Iterable[bytes], watch_codes: frozenset[str],
                         evidence.codes.setdefault(key, lineno)
             elif addr == "E" and value:
                 evidence.e_words = True
-            elif not value and addr in ("L", "LN", "C", "CR", "CT", "CP", "CC") and line_kind is None:
+            elif not value and addr in _BLOCK_KINDS and line_kind is None:
                 line_kind = addr
         if 92.0 in gs:
             evidence.reset.update((aname or addr).upper() for aname, _, addr, _ in pairs)
@@ -198,7 +203,7 @@ def scan(lines: Iterable[bytes], watch_codes: frozenset[str],
                 motion = int(g)
             elif g == 80.0 or 81.0 <= g <= 89.0:
                 motion = None
-        if line_kind in ("L", "LN"):
+        if line_kind in _LINEAR_KINDS:
             motion = 1
         suspects = reader.suspects(pairs)
         if not suspects:

@@ -10,6 +10,7 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
+from ncfix.nc.dialects import DIALECTS
 from ncfix.nc.emit import format_value
 from ncfix.profiles import Profile
 
@@ -33,23 +34,17 @@ def post_program(profile: Profile, points: np.ndarray, vectors: np.ndarray, *, t
     letters = kin.letters
     decimals = {letter: fmt.linear if letter in ("X", "Y", "Z") else (fmt.vector if profile.is_vector else fmt.angle)
                 for letter in letters}
-    dialect = profile.dialect
+    dialect = DIALECTS[profile.dialect]
     notes = dict(comments)
 
     def words_line(words: np.ndarray, previous: np.ndarray | None, motion: str, extra: str = "") -> str:
         parts = []
         for letter, value, old in zip(letters, words, previous if previous is not None else [None] * len(letters)):
             text = format_value(value, decimals[letter], None, fmt.force_sign, fmt.force_decimal_point)
-            if dialect == "heidenhain" or profile.is_vector or old is None or text != format_value(
+            if dialect.post_every_word or profile.is_vector or old is None or text != format_value(
                     old, decimals[letter], None, fmt.force_sign, fmt.force_decimal_point):
-                joiner = "=" if dialect == "sinumerik" and len(letter) > 1 else ""
-                parts.append(f"{letter}{joiner}{text}")
-        if dialect == "heidenhain":
-            keyword = "LN" if profile.is_vector else "L"
-            feed = "FMAX" if motion == "rapid" else f"F{feed_mm_min:.0f}"
-            return f"{keyword} {' '.join(parts)} {feed}{extra}"
-        code = "G0" if motion == "rapid" else "G1"
-        return f"{code} {' '.join(parts)}{extra}"
+                parts.append(f"{letter}{dialect.joiner(letter)}{text}")
+        return dialect.post_line(motion == "rapid", profile.is_vector, " ".join(parts), feed_mm_min) + extra
 
     start = np.zeros(len(letters))
     if profile.is_vector:
@@ -57,10 +52,10 @@ def post_program(profile: Profile, points: np.ndarray, vectors: np.ndarray, *, t
     approach = points[0] + approach_mm * vectors[0]
     previous = kin.inverse(approach, vectors[0], start, tcp=tcp)
     body = [words_line(previous, None, "rapid")]
-    feed_text = f" F{feed_mm_min:.0f}" if dialect != "heidenhain" else ""
+    feed_text = f" F{feed_mm_min:.0f}" if dialect.post_rapid_feed is None else ""  # else on every block
     for i, (p, n) in enumerate(zip(points, vectors)):
         if i in notes:
-            body.append(_comment(dialect, notes[i]))
+            body.append(dialect.comment(notes[i]))
         words = kin.inverse(p, n, previous, tcp=tcp)
         body.append(words_line(words, previous, "feed", feed_text if i == 0 else ""))
         if i == 0 and deposit_codes:
@@ -71,40 +66,4 @@ def post_program(profile: Profile, points: np.ndarray, vectors: np.ndarray, *, t
     retract = points[-1] + approach_mm * vectors[-1]
     body.append(words_line(kin.inverse(retract, vectors[-1], previous, tcp=tcp), previous, "rapid"))
 
-    yield from _wrap(profile, body, title, number)
-
-
-def _comment(dialect: str, text: str) -> str:
-    return f"; {text}" if dialect in ("sinumerik", "heidenhain") else f"({text.upper()})"
-
-
-def _wrap(profile: Profile, body: list[str], title: str, number: int) -> Iterator[str]:
-    dialect = profile.dialect
-    name = title.upper().replace(" ", "_")
-    if dialect == "heidenhain":
-        lines = [f"BEGIN PGM {name} MM", "TOOL CALL 1 Z S0", "M128", *body, "M129", f"END PGM {name} MM"]
-        for i, line in enumerate(lines):
-            yield f"{i} {line}\n"
-        return
-    if dialect == "sinumerik":
-        head = [f"; %_N_{name}_MPF", f"; {title} (posted for ncfix samples)", "G17 G71 G90 G94", "TRAORI",
-                "ORIWKS", "ORIVECT"]
-        tail = ["TRAFOOF", "M30"]
-        for line in head[:2]:
-            yield line + "\n"
-        for i, line in enumerate(head[2:] + body + tail):
-            yield f"N{10 * (i + 1)} {line}\n"
-        return
-    tcp_code = "G43.5 H1" if profile.is_vector else "G43.4 H1"
-    yield "%\n"
-    yield f"O{number:04d} ({title.upper()})\n"
-    yield "(POSTED FOR NCFIX SAMPLES: TIP POINTS, TCP ON)\n"
-    lines = ["G21 G90 G94 G17", "G54", tcp_code if profile.tcp != "never" else "G49", *body, "G49", "M30"]
-    n = 0
-    for line in lines:
-        if line.startswith("("):
-            yield line + "\n"
-            continue
-        n += 10
-        yield f"N{n} {line}\n"
-    yield "%\n"
+    yield from dialect.post_frame(body, title, number, profile.is_vector, profile.tcp != "never")

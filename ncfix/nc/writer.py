@@ -10,17 +10,15 @@ Incremental (G91) blocks after a change are rewritten so that they arrive where 
 from __future__ import annotations
 
 import math
-import re
 
 import numpy as np
 
 from ncfix.nc.chunk import Chunk
+from ncfix.nc.dialects import DIALECTS
 from ncfix.nc.emit import replace_values, rewrite_line
 from ncfix.nc.lexer import code_of, word_spans
 from ncfix.nc.modal import MM_PER_INCH
 from ncfix.profiles import Profile
-
-_HEIDENHAIN_L = re.compile(r"^(\s*\d*\s*)L(\s)")
 
 
 class Writer:
@@ -28,6 +26,7 @@ class Writer:
 
     def __init__(self, profile: Profile):
         self.profile = profile
+        self.dialect = DIALECTS[profile.dialect]
         kin = profile.kinematics
         self.letters = kin.letters
         self.vector_letters = kin.orientation_letters if profile.is_vector else ()
@@ -99,8 +98,8 @@ class Writer:
         if not values:
             return None
         raw = chunk.lines[i].decode("latin-1")
-        if self.profile.dialect == "heidenhain" and required:
-            raw = _HEIDENHAIN_L.sub(r"\1LN\2", raw, count=1)
+        if required:  # a block gaining tool-vector words may need another keyword (Klartext L → LN)
+            raw = self.dialect.with_vector_keyword(raw)
         return rewrite_line(raw, self.profile, values, required)
 
     def _restated(self, chunk: Chunk, i: int, emitted: np.ndarray, programmed: np.ndarray, scale: float) -> dict:
