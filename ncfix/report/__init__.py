@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ncfix.config import OPTION_NAMES
 from ncfix.fileio import atomic_output, atomic_write_text
 from ncfix.version import __version__
 
@@ -330,7 +331,7 @@ class Report:
                 "left as programmed.")
 
     def to_json(self) -> dict[str, Any]:
-        settings = {k: v for k, v in asdict(self.options).items() if k not in ("extra",)}
+        settings = {k: v for k, v in asdict(self.options).items() if k in OPTION_NAMES}  # the user's options
         settings = {k: list(v) if isinstance(v, tuple) else v for k, v in settings.items()}
         return {
             "schema": 1,
