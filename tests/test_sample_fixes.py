@@ -1,4 +1,4 @@
-"""Every bundled sample fixed by every strategy, checked as issue #5 and #6 ask (heavy):
+"""Every bundled sample fixed by every strategy, checked end to end (heavy):
 
 - lossless: the same number of lines, and the lines that differ are exactly the report's changes
   (and ``summary.changed_blocks`` counts them);
