@@ -92,7 +92,7 @@ class Program:
         rows = np.nonzero(chunk.motion >= 0)[0]
         known = np.isfinite(chunk.words[rows]).all(axis=1)
         self.rows, self.profile = rows[known], profile
-        poses = PoseMap(profile)
+        self.poses = poses = PoseMap(profile)
         self.words = poses.normalise(chunk.words[self.rows])
         self.tcp = poses.tcp(chunk, self.rows)
         self.P, self.N, self.R = poses.forward(self.words, self.tcp)
@@ -135,7 +135,7 @@ def _exact_hits(prog: Program, ref, bead_r: float, rows: np.ndarray, sweeps: boo
             m = max(1, int(np.ceil((np.linalg.norm(prog.C[i] - prog.C[i - 1]) + rho * (turn + 1e-3)) / PITCH)))
             t = np.arange(1, m) / m
             words = prog.words[i - 1] + t[:, None] * (prog.words[i] - prog.words[i - 1])
-            P, N, R = prog.path.forward(prog.path.normalise(words), np.full(len(t), prog.tcp[i]))
+            P, N, R = prog.poses.forward(prog.poses.normalise(words), np.full(len(t), prog.tcp[i]))
             poses += list(zip(P + STANDOFF * N, R, P))
         for c, r, p in poses:
             if ref.parts and ref.collides(c, r):
