@@ -84,8 +84,7 @@ class PathChecker:
     def __init__(self, checker: Checker, profile: Profile, standoff_mm: float, pitch_mm: float) -> None:
         self.checker = checker
         self.poses = PoseMap(profile)
-        self.kin = profile.kinematics
-        self.is_vector = profile.is_vector
+        self.kin, self.is_vector = self.poses.kin, self.poses.is_vector
         self.standoff_mm = float(standoff_mm)
         self.pitch_mm = float(pitch_mm)
         self.xyz = [list(self.kin.letters).index(a) for a in "XYZ"]
