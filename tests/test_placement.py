@@ -109,3 +109,19 @@ def test_the_frame_warning_spares_a_platform_the_first_layer_sits_on(tmp_path, g
                            check=True)
     frame = [w for w in report.warnings if "does not overlap the toolpath" in w]
     assert bool(frame) == warned
+
+
+@pytest.mark.parametrize(("gap", "warned"), [(20.0, False), (120.0, True)])
+def test_the_frame_warning_spares_a_part_the_head_hits(tmp_path, gap, warned):
+    """A wall ``gap`` mm beside a vertical pass, outside the path's box: at 20 mm the head's body
+    hits it (the part is where the program works, a fixture beside the path); at 120 mm nothing
+    reaches it, so it is likely in the wrong frame."""
+    wall = trimesh.creation.box(extents=(4.0, 60.0, 60.0))
+    wall.apply_translation((-2.0 - gap, 0.0, 30.0))
+    wall.export(tmp_path / "wall.stl")
+    program = b"G90\nG0 X0 Y-10 Z5 I0 J0 K1\nG1 Z1 F600\nG1 Y10\nG0 Z5\nM30\n"
+    report = ncfix.process(io.BytesIO(program), io.BytesIO(), head=str(SAMPLES / "deposition_head.stl"),
+                           part=[str(tmp_path / "wall.stl")], bead_radius=0.0, check=True)
+    frame = [w for w in report.warnings if "does not overlap the toolpath" in w]
+    assert bool(frame) == warned
+    assert bool(report.collisions) != warned

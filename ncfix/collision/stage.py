@@ -106,23 +106,36 @@ class MotionRows:
         return out
 
 
-def check_placement(path: PathChecker, motion: MotionRows, placed_parts: list, chunk, rows, report) -> list:
-    """Check each part's placement against the toolpath box of the first chunk that moves (wrong
-    frame or units): a streaming filter does not know the whole program's box. The box is grown
-    by where the material lies (the beads reach ``bead_drop_mm + bead_radius_mm`` from P) and a
-    pitch, the checker's resolution: a platform that the first layer is printed on touches it.
-    Returns the parts still to check (none once a chunk moved)."""
-    if not placed_parts or not len(rows):
-        return placed_parts
-    P, _, _ = path.forward(path.normalise(chunk.words[rows]), motion.tcp(chunk, rows))
-    P = P[np.isfinite(P).all(axis=1)]
-    if len(P) == 0:
-        return placed_parts
-    ck = path.checker
-    grow = ck.pitch_mm + (ck.bead_drop_mm + ck.bead_radius_mm if ck.bead_radius_mm > 0 else 0.0)
-    for part in placed_parts:
-        report.warnings.extend(check_part_overlaps(part, P.min(axis=0) - grow, P.max(axis=0) + grow))
-    return []
+class PlacementCheck:
+    """The parts' placement check (wrong frame or units), on the toolpath box of the first chunk
+    that moves: a streaming filter does not know the whole program's box. A part too far to
+    reach is an error there and then; a part that only misses the box is a warning, given at the
+    end unless some block hit the part (the head reaches it, so it is where the program works:
+    a wall or fixture beside the path). The box is grown by where the material lies (the beads
+    reach ``bead_drop_mm + bead_radius_mm`` from P) and a pitch, the checker's resolution: a
+    platform that the first layer is printed on touches it."""
+
+    def __init__(self, parts):
+        self.parts = list(parts)
+        self.pending: list[tuple[str, str]] = []  # (the checker's name of the part, warning)
+
+    def push(self, path: PathChecker, motion: MotionRows, chunk, rows) -> None:
+        if not self.parts or not len(rows):
+            return
+        P, _, _ = path.forward(path.normalise(chunk.words[rows]), motion.tcp(chunk, rows))
+        P = P[np.isfinite(P).all(axis=1)]
+        if len(P) == 0:
+            return
+        ck = path.checker
+        grow = ck.pitch_mm + (ck.bead_drop_mm + ck.bead_radius_mm if ck.bead_radius_mm > 0 else 0.0)
+        for part, body in zip(self.parts, ck.parts, strict=True):  # both in load_parts' order
+            self.pending += [(body.name, w) for w in check_part_overlaps(part, P.min(axis=0) - grow,
+                                                                        P.max(axis=0) + grow)]
+        self.parts = []
+
+    def report_into(self, report) -> None:
+        hit = {body for entry in report.collisions for body in entry["bodies"]}
+        report.warnings.extend(w for name, w in self.pending if name not in hit)
 
 
 def collision_entry(checker: Checker, line: int, part_hit: np.ndarray, deposit_hit: bool, deposit_clearance: float,
@@ -174,7 +187,7 @@ class CheckStage:
     """Pipeline stage: checks every motion block (end pose and sweep) and fills the report."""
 
     def __init__(self, checker: Checker, profile, options, report, placed_parts=()):
-        self.placed_parts = list(placed_parts)
+        self.placement = PlacementCheck(placed_parts)
         self.checker = checker
         self.path = PathChecker(checker, profile, options.standoff, options.pitch)
         self.motion = MotionRows(self.path, profile, options)
@@ -188,7 +201,7 @@ class CheckStage:
 
     def push(self, chunk):
         rows = np.nonzero(chunk.motion >= 0)[0]
-        self.placed_parts = check_placement(self.path, self.motion, self.placed_parts, chunk, rows, self.report)
+        self.placement.push(self.path, self.motion, chunk, rows)
         dep = self.motion.deposit(chunk)
         for a in range(0, len(rows), self.window):
             rows_w, moves = self.motion.moves(chunk, rows[a:a + self.window], dep)
@@ -208,5 +221,6 @@ class CheckStage:
 
     def flush(self):
         self.report.summary["checked_samples"] = self.samples
+        self.placement.report_into(self.report)
         self.motion.report_into(self.report)
         return []

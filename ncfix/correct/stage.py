@@ -16,7 +16,7 @@ import numpy as np
 from ncfix.collision.checker import Checker
 from ncfix.collision.deposit import BeadField, BeadStore
 from ncfix.collision.path import MoveHits, Moves, PathChecker, join_beads
-from ncfix.collision.stage import MotionRows, check_placement, collision_entry
+from ncfix.collision.stage import MotionRows, PlacementCheck, collision_entry
 from ncfix.correct.extrusion import follow
 from ncfix.correct.solve import Episode, Solution
 from ncfix.geometry.frames import angle_between_deg
@@ -226,7 +226,7 @@ class CorrectStage:
         self.options = options
         self.report = report
         self.strategy = strategy
-        self.placed_parts = list(placed_parts)
+        self.placement = PlacementCheck(placed_parts)
         self.path = PathChecker(checker, profile, options.standoff, options.pitch)
         self.motion = MotionRows(self.path, profile, options)
         self.window = int(options.window)
@@ -255,7 +255,7 @@ class CorrectStage:
     # -- stage protocol ------------------------------------------------------------------------
     def push(self, chunk):
         rows = np.nonzero(chunk.motion >= 0)[0]
-        self.placed_parts = check_placement(self.path, self.motion, self.placed_parts, chunk, rows, self.report)
+        self.placement.push(self.path, self.motion, chunk, rows)
         dep = self.motion.deposit(chunk)
         serial = self.first_serial + len(self.held)
         self.held.append(chunk)
@@ -275,6 +275,7 @@ class CorrectStage:
         self._advance(end=True)
         out = self._release(everything=True)
         self.report.summary["checked_samples"] = self.samples
+        self.placement.report_into(self.report)
         self.motion.report_into(self.report)
         return out
 
