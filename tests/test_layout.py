@@ -319,3 +319,19 @@ def test_dialect_names_are_compared_only_in_the_dialects_module():
                 if any(isinstance(s, ast.Constant) and s.value in names for s in sides):
                     bad.append(f"{module} line {node.lineno}: {ast.unparse(node)}")
     assert not bad, "dialect names compared outside ncfix.nc.dialects:\n  " + "\n  ".join(bad)
+
+
+def test_public_constructors_have_type_hints():
+    """A public class's ``__init__`` says what each argument is: the constructor is where a
+    newcomer meets a class."""
+    bad = []
+    for module, path in _modules().items():
+        for cls in _tree(path).body:
+            if not isinstance(cls, ast.ClassDef) or cls.name.startswith("_"):
+                continue
+            for init in (f for f in cls.body if isinstance(f, ast.FunctionDef) and f.name == "__init__"):
+                args = init.args.posonlyargs + init.args.args[1:] + init.args.kwonlyargs
+                missing = [a.arg for a in args if a.annotation is None]
+                if missing:
+                    bad.append(f"{module}.{cls.name}: {', '.join(missing)}")
+    assert not bad, "constructors without type hints:\n  " + "\n  ".join(bad)

@@ -218,7 +218,8 @@ _failing_kernel = njit(cache=True, nogil=True)(_failing_kernel)
 class HostTree:
     """A SphereTree's arrays for the kernels (children padded with -1, as ``TreeTensors``)."""
 
-    def __init__(self, center, radius, reach, child_start, child_count, children, level_start):
+    def __init__(self, center: np.ndarray, radius: np.ndarray, reach: np.ndarray, child_start: np.ndarray,
+                 child_count: np.ndarray, children: np.ndarray, level_start: np.ndarray) -> None:
         self.center = np.ascontiguousarray(center, dtype=np.float64)
         self.radius = np.ascontiguousarray(radius, dtype=np.float64)
         self.reach = np.ascontiguousarray(reach, dtype=np.float64)

@@ -397,7 +397,8 @@ class Refiner:
     margins, and a Refiner of them for the next level. The checker calls a sample colliding only
     when a sub-sample collides (each sub-sample's margin covers its own stretch: conservative)."""
 
-    def __init__(self, path: "PathChecker", moves: Moves, ws, we, arcs, row, t0, t1):
+    def __init__(self, path: PathChecker, moves: Moves, ws: np.ndarray, we: np.ndarray, arcs: np.ndarray,
+                 row: np.ndarray, t0: np.ndarray, t1: np.ndarray) -> None:
         self.path, self.moves, self.ws, self.we, self.arcs = path, moves, ws, we, arcs
         self.row, self.t0, self.t1 = row, t0, t1
 

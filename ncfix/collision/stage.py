@@ -6,6 +6,9 @@ samples at a time, the grids and the beads laid so far.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from ncfix.collision.checker import Checker
@@ -13,7 +16,12 @@ from ncfix.collision.deposit import BeadStore, DepositRule, choose_rule, deposit
 from ncfix.collision.depth import move_poses
 from ncfix.collision.implied import ImpliedBead
 from ncfix.collision.path import MoveHits, Moves, PathChecker
-from ncfix.geometry.mesh import check_part_overlaps
+from ncfix.geometry.mesh import LoadedMesh, check_part_overlaps
+from ncfix.profiles import Profile
+
+if TYPE_CHECKING:
+    from ncfix.config import Options
+    from ncfix.report import Report
 
 
 class MotionRows:
@@ -21,7 +29,7 @@ class MotionRows:
     With --filament-diameter it also measures the bead the program's extrusion implies, on the
     moves as programmed (``implied.ImpliedBead``)."""
 
-    def __init__(self, path: PathChecker, profile, options):
+    def __init__(self, path: PathChecker, profile: Profile, options: Options) -> None:
         self.path = path
         self.extrusion_letter = profile.extrusion_letter
         self.options = options
@@ -115,7 +123,7 @@ class PlacementCheck:
     reach ``bead_drop_mm + bead_radius_mm`` from P) and a pitch, the checker's resolution: a
     platform that the first layer is printed on touches it."""
 
-    def __init__(self, parts):
+    def __init__(self, parts: Iterable[LoadedMesh]) -> None:
         self.parts = list(parts)
         self.pending: list[tuple[str, str]] = []  # (the checker's name of the part, warning)
 
@@ -186,7 +194,8 @@ def record_collisions(report, checker: Checker, lines: np.ndarray, hits: MoveHit
 class CheckStage:
     """Pipeline stage: checks every motion block (end pose and sweep) and fills the report."""
 
-    def __init__(self, checker: Checker, profile, options, report, placed_parts=()):
+    def __init__(self, checker: Checker, profile: Profile, options: Options, report: Report,
+                 placed_parts: Iterable[LoadedMesh] = ()) -> None:
         self.placement = PlacementCheck(placed_parts)
         self.checker = checker
         self.path = PathChecker(checker, profile, options.standoff, options.pitch)

@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ncfix.config import EpaOptions
+from ncfix.config import EpaOptions, Options
 from ncfix.correct.epa import VARIANTS, EpaModel, run_tilts
-from ncfix.correct.solve import GraphStrategy, Solution
+from ncfix.correct.solve import Episode, GraphStrategy, Solution
 from ncfix.errors import ConfigError
 from ncfix.geometry.cells import first_of_each_cell
 from ncfix.geometry.frames import angle_between_deg, rotation_between, rotation_from_z
@@ -62,7 +62,7 @@ class EpaStrategy:
 
     name = "epa"
 
-    def __init__(self, options):
+    def __init__(self, options: Options) -> None:
         self.max_tilt = float(options.max_tilt)
         self.max_step = float(options.max_step)
         epa = options.epa
@@ -113,7 +113,7 @@ class EpaStrategy:
                                         f"{result.seconds:.2f} s (not cached before this run)")
         return self.model
 
-    def solve(self, ep):
+    def solve(self, ep: Episode) -> Solution:
         started = time.perf_counter()
         solver = _EpisodeSolver(self, self.model_for(ep.checker, ep.report), ep)
         solution = solver.run()
@@ -146,7 +146,7 @@ class OffsetFrames:
     into the row after; ``limit_deg`` is each one's limit, ``base`` and ``safe`` its budgets.
     """
 
-    def __init__(self, ep):
+    def __init__(self, ep: Episode) -> None:
         self.L = L = len(ep.rows)
         self.N0 = N0 = ep.N0 / np.linalg.norm(ep.N0, axis=1, keepdims=True)
         # ``turn[j]`` maps the previous programmed orientation as the program turns (the identity

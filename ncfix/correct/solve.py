@@ -12,6 +12,7 @@ P′ = C − h·N′; ``point`` keeps P (the tip moves to P + h·N′).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -22,6 +23,10 @@ from ncfix.correct.candidates import SphereGrid, level_candidates
 from ncfix.correct.graph import LayeredGraph
 from ncfix.geometry.frames import angle_between_deg, minimal_rotation, turn_rotations
 from ncfix.kinematics.base import Unreachable
+
+if TYPE_CHECKING:
+    from ncfix.config import Options
+    from ncfix.correct.stage import CorrectStage
 
 # A step may exceed θ only where the program's own step did: by this much at most (degrees).
 STEP_SLACK_DEG = 1e-6
@@ -36,6 +41,12 @@ class Solution:
     reasons: dict[int, str] = field(default_factory=dict)
 
 
+class Strategy(Protocol):
+    """What the correction stage asks of a strategy (``--strategy``): a Solution for each episode."""
+
+    def solve(self, ep: Episode) -> Solution: ...
+
+
 class Episode:
     """Levels ``first .. last`` of the stage's row table: the view a strategy works through.
 
@@ -48,7 +59,7 @@ class Episode:
     ``free``, ``programmed_free``, ``moves_hit_parts``, ``words_of`` and ``recheck``.
     """
 
-    def __init__(self, stage, first: int, last: int, colliding: np.ndarray):
+    def __init__(self, stage: CorrectStage, first: int, last: int, colliding: np.ndarray) -> None:
         r = stage.rows
         self.stage = stage
         self.path = stage.path
@@ -314,7 +325,7 @@ class GraphStrategy:
     PROOF_PAIRS = 4096  # moves checked at most to show that no move frees a level (``_prove_stuck``)
     PROOF_BATCH = 32  # moves checked at once there, until one is free
 
-    def __init__(self, options):
+    def __init__(self, options: Options) -> None:
         self.max_tilt = float(options.max_tilt)
         self.max_step = float(options.max_step)
         self.grid = SphereGrid(float(options.resolution))

@@ -9,7 +9,9 @@ docs/correction.md#episodes; the order of work on ``CorrectStage``.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,10 +20,16 @@ from ncfix.collision.deposit import BeadField, BeadStore
 from ncfix.collision.path import MoveHits, Moves, PathChecker, join_beads
 from ncfix.collision.stage import MotionRows, PlacementCheck, collision_entry
 from ncfix.correct.extrusion import follow
-from ncfix.correct.solve import Episode, Solution
+from ncfix.correct.solve import Episode, Solution, Strategy
 from ncfix.geometry.frames import angle_between_deg
 from ncfix.nc.emit import printed_decimals, word_kind
 from ncfix.nc.modal import MM_PER_INCH
+from ncfix.profiles import Profile
+
+if TYPE_CHECKING:
+    from ncfix.config import Options
+    from ncfix.geometry.mesh import LoadedMesh
+    from ncfix.report import Report
 
 
 @dataclass
@@ -220,7 +228,8 @@ class CorrectStage:
     # every row again at every detection (the reference the reuse is tested against).
     REUSE_DETECTION = True
 
-    def __init__(self, checker: Checker, profile, options, report, strategy, placed_parts=()):
+    def __init__(self, checker: Checker, profile: Profile, options: Options, report: Report,
+                 strategy: Strategy, placed_parts: Iterable[LoadedMesh] = ()) -> None:
         self.checker = checker
         self.profile = profile
         self.options = options

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from ncfix.config import Options
 from ncfix.correct.epa_strategy import EpaStrategy
-from ncfix.correct.solve import GraphStrategy
+from ncfix.correct.solve import GraphStrategy, Strategy
 
 STRATEGIES = {"graph": GraphStrategy, "epa": EpaStrategy}
 
 
-def make_strategy(options: Options) -> GraphStrategy | EpaStrategy:
+def make_strategy(options: Options) -> Strategy:
     """The strategy ``options.strategy`` names, made with these options."""
     try:
         strategy = STRATEGIES[options.strategy]

@@ -13,12 +13,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ncfix.profiles import Profile
+
 
 class PoseMap:
     """A profile's words ↔ pose map: ``forward`` for rows of words, ``tcp`` for the TCP state the
     profile gives each block (``tcp = "never" | "always" | "program"``)."""
 
-    def __init__(self, profile) -> None:
+    def __init__(self, profile: Profile) -> None:
         self.kin = profile.kinematics
         self.is_vector = profile.is_vector
         self.tcp_mode = profile.tcp
