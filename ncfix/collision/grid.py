@@ -65,6 +65,10 @@ class DistanceGrid:
     pitch_mm: float
     name: str = ""
     body_bounds_mm: np.ndarray | None = None  # (2, 3) box holding the whole body
+    # The on-disk cache's key and folder of this grid (key "" when it was built outside the
+    # cache): what is derived from the grid alone (``depth.DepthProbe``'s field) is cached by it.
+    cache_key: str = ""
+    cache_dir: str | None = None
     _tensors: dict | None = None
 
     @property
@@ -240,4 +244,5 @@ def cached_distance_grid(mesh: trimesh.Trimesh, pitch_mm: float, *, closed: bool
     grid, _ = cache.cached("grid", key, _GRID_ARRAYS,
                            lambda: build_distance_grid(mesh, pitch_mm, closed=closed, name=name, bounds_mm=bounds_mm),
                            to_arrays, from_arrays, cache_dir, what=what)
+    grid.cache_key, grid.cache_dir = key, cache_dir
     return grid
