@@ -9,13 +9,17 @@ no decision depends on it.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from numba import njit
-import trimesh
 
 from ncfix import cache
 from ncfix.collision.grid import DistanceGrid
 from ncfix.collision.voxelize import distance_transform
+
+if TYPE_CHECKING:
+    import trimesh
 
 # Poses of a move whose depth is measured: this many, evenly spread, and its last. Depth changes no
 # faster than the head moves, so a pass is measured to within half the head's travel between them.

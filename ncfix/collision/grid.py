@@ -9,16 +9,20 @@ The proof is on ``DistanceGrid``, the exact band near the body on ``tighten_near
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from dataclasses import dataclass
 
 import numpy as np
-import trimesh
 
 from ncfix import cache
 from ncfix.collision.near import surface_distances
 from ncfix.collision.voxelize import EDT_SLACK_MM, distance_transform, grid_frame, surface_cells, voxelize
 from ncfix.geometry.tolerances import TOLERANCES
 from ncfix.memory import ensure_fits, grid_cells
+
+if TYPE_CHECKING:
+    import trimesh
 
 # Empty cells around the body: near it, lookups then stay inside the grid (tighter bounds).
 GRID_PAD_CELLS = 6
