@@ -130,7 +130,7 @@ def _add_part_previews(report: "Report", options: Options) -> None:
         report.warnings.append(f"no 3-D picture of the parts: {exc}")
         return
     for loaded in loaded_parts:
-        report.add_part_preview(f"part:{Path(loaded.name).name}", loaded.mesh)
+        report.add_part_preview(f"part:{Path(loaded.name).name}", loaded.arrays)
 
 
 @contextmanager

@@ -143,7 +143,7 @@ def build_stages(options: Options, profile: Profile, report: Report, box=None) -
     resolve_device(options.device)  # a missing GPU is said before the meshes are read
     head = load_head(options.head, options.head_tip, options.head_axis)
     report.warnings.extend(head.warnings)
-    height = float(head.mesh.vertices[:, 2].max())  # head frame: the tip at 0, the axis +Z
+    height = float(head.arrays.vertices[:, 2].max())  # head frame: the tip at 0, the axis +Z
     if options.bead_radius > 0 and options.tip_allowance >= height:
         raise ConfigError(f"--tip-allowance {options.tip_allowance:g} mm is not below the top of the head "
                           f"({height:.4g} mm above its tip): no part of it would be checked against deposited "
@@ -151,18 +151,18 @@ def build_stages(options: Options, profile: Profile, report: Report, box=None) -
     parts, loaded_parts = [], []
     for loaded in load_parts(options, profile):
         report.warnings.extend(loaded.warnings)
-        parts.append((f"part:{Path(loaded.name).name}", loaded.mesh, loaded.closed))
+        parts.append((f"part:{Path(loaded.name).name}", loaded.arrays, loaded.closed))
         loaded_parts.append(loaded)
-    model = cached_head_model(head.mesh, options.pitch, name=Path(options.head).name)
+    model = cached_head_model(head.arrays, options.pitch, name=Path(options.head).name)
     report.details.append(model.summary())
     reach_box = None
     if box is not None:
         # The head lies within rho of its tip; with --pivot point a tilted tip stays within h of P.
-        rho = float(np.linalg.norm(head.mesh.vertices, axis=1).max())
+        rho = float(np.linalg.norm(head.arrays.vertices, axis=1).max())
         reach = rho + options.standoff + options.clearance + 2 * options.pitch
         reach_box = np.array([box[0] - reach, box[1] + reach])
     bead = BeadShape.stated(options.bead_radius, options.bead_width, options.bead_height, options.standoff)
-    checker = Checker(head.mesh, model, parts, pitch_mm=options.pitch, clearance_mm=options.clearance,
+    checker = Checker(head.arrays, model, parts, pitch_mm=options.pitch, clearance_mm=options.clearance,
                       bead_radius_mm=bead.radius_mm, tip_allowance_mm=options.tip_allowance,
                       device=options.device, part_bounds_mm=reach_box, bead_drop_mm=bead.drop_mm,
                       bead_shape=bead)

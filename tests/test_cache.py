@@ -16,6 +16,7 @@ import trimesh
 
 import ncfix
 from ncfix import cache
+from ncfix.collision import depth as depth_module
 from ncfix.collision import grid as grid_module
 from ncfix.collision import head as head_module
 from ncfix.collision import proximity as proximity_module
@@ -75,6 +76,28 @@ def test_a_cached_grid_is_the_built_grid_bit_for_bit(tmp_path, monkeypatch, clos
     _same_grid(again, built)
     points = np.random.default_rng(0).uniform(-30, 50, (500, 3))
     assert np.array_equal(again.lower_bound_np(points), built.lower_bound_np(points))
+
+
+def test_the_depth_field_of_a_cached_grid_is_cached_beside_it(tmp_path, monkeypatch):
+    """The report's depth field (``depth.inside_field``) of a grid read from the cache is read from
+    the cache too, the same float32 array the distance transform gives; a grid built outside the
+    cache has it computed."""
+    mesh = _l_shape()
+    built = build_distance_grid(mesh, 1.0, name="part:l")
+    want = depth_module.distance_transform(built.dist_mm == 0, built.pitch_mm)
+    assert not built.cache_key and np.array_equal(depth_module.inside_field(built), want)
+    assert not _files(tmp_path, "depth")
+    grid = cached_distance_grid(mesh, 1.0, name="part:l", cache_dir=tmp_path)
+    first = depth_module.inside_field(grid)
+    assert len(_files(tmp_path, "depth")) == 1
+    _no_build(monkeypatch, depth_module, "distance_transform")
+    again = depth_module.inside_field(cached_distance_grid(mesh, 1.0, name="part:l", cache_dir=tmp_path))
+    for field in (first, again):
+        assert field.dtype == np.float32 and np.array_equal(field, want)
+    assert (want > 0).any()
+    other = cached_distance_grid(mesh, 0.5, name="part:l", cache_dir=tmp_path)
+    with pytest.raises(AssertionError, match="cached"):  # another grid: another field, built
+        depth_module.inside_field(other)
 
 
 def test_a_hit_takes_the_name_it_is_asked_for(tmp_path):

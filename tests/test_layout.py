@@ -21,6 +21,9 @@ PACKAGE = REPO / "ncfix"
 # seconds), which ``import ncfix``, ``ncfix --help`` and a run without ``--head`` never load.
 _LIGHT_START = "`import ncfix` and `ncfix --help` load no numpy/numba; a run loads them"
 _NO_HEAD = "the checker's stack (coal, trimesh, compiled kernels: seconds) loads only with --head"
+_WARM = ("trimesh (with scipy and networkx: about a second) loads only to read a mesh or build a model the "
+         "cache does not hold: a warm-cache check never imports it (test_startup)")
+_KD_TREES = "scipy's k-d trees load only where a run searches points with them, never in a warm-cache check"
 LAZY_IMPORTS = {
     ("ncfix.api", "ncfix.pipeline"): _LIGHT_START,
     ("ncfix.api", "ncfix.profiles"): _LIGHT_START,
@@ -36,6 +39,13 @@ LAZY_IMPORTS = {
     ("ncfix.collision.deposit", "torch"): "the CPU path never imports torch (test_startup)",
     ("ncfix.collision.grid", "torch"): "the CPU path never imports torch (test_startup)",
     ("ncfix.correct.decompose", "coacd"): "CoACD loads only when a head is decomposed (a cache miss)",
+    ("ncfix.geometry.mesh", "trimesh"): _WARM,
+    ("ncfix.geometry.meshdata", "trimesh"): _WARM,
+    ("ncfix.collision.exact", "trimesh"): _WARM,
+    ("ncfix.collision.proximity", "trimesh"): _WARM,
+    ("ncfix.collision.head", "scipy"): _KD_TREES,
+    ("ncfix.collision.deposit", "scipy"): _KD_TREES,
+    ("ncfix.collision.implied", "scipy"): _KD_TREES,
 }
 
 

@@ -76,6 +76,54 @@ def test_a_cpu_fix_never_imports_torch(tmp_path):
     assert (tmp_path / "fixed.nc").read_bytes() != (SAMPLES / "deposit_wall.nc").read_bytes()
 
 
+# Imported by a cold run (reading a mesh, building a model), never by a warm-cache check: trimesh
+# and what it pulls in (about a second), scipy's k-d trees, torch. scipy itself is loaded by numba
+# (its compiler target looks for scipy's BLAS), so only these of its modules are looked for.
+HEAVY = ("trimesh", "networkx", "torch", "scipy.spatial", "scipy.sparse", "scipy.optimize")
+
+
+def _warm_check(tmp_path: Path, runs: str) -> None:
+    """``runs`` (``main([...])`` calls) twice, each time in a fresh interpreter with one cache
+    folder: the first fills it, the second must import none of ``HEAVY``."""
+    env = {**os.environ, "PYTHONPATH": str(REPO), "NCFIX_CACHE": str(tmp_path / "cache")}
+    code = "import sys\nfrom ncfix.cli import main\n" + textwrap.dedent(runs) + textwrap.dedent(f"""
+        heavy = sorted(m for m in sys.modules if m in {HEAVY!r} or m.startswith(tuple(h + "." for h in {HEAVY!r})))
+        print("HEAVY", heavy)
+        """)
+    for warm in (False, True):
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, env=env,
+                              timeout=600)
+        assert done.returncode == 0, done.stdout + done.stderr
+        heavy = done.stdout.splitlines()[-1]
+        if warm:
+            assert heavy == "HEAVY []", f"a warm-cache check imported {heavy}"
+        else:
+            assert "'trimesh'" in heavy, heavy  # the cold run reads the meshes with it: the test sees it
+
+
+def test_a_warm_cache_check_imports_no_trimesh_scipy_spatial_or_torch(tmp_path):
+    """A check whose meshes, grids, trees and cell lists all come from the cache reads its meshes
+    as arrays: no trimesh (nor the scipy and networkx modules it pulls in), no torch. Part
+    collisions reported with their depth (a wall across the path) and beads (the deposit wall)."""
+    (tmp_path / "ncfix.toml").write_text("[ncfix]\n")
+    _warm_check(tmp_path, f"""
+        head = {str(SAMPLES / "deposition_head.stl")!r}
+        assert main([{str(REPO / "tests" / "golden" / "fix_ijk" / "input.nc")!r}, "--machine", "ijk", "--head", head,
+                     "--part", {str(REPO / "tests" / "golden" / "meshes" / "wall_x.stl")!r}, "--bead-radius", "0",
+                     "--check", "-q", "-o", "wall.nc"]) == 1
+        assert main([{str(SAMPLES / "deposit_wall.nc")!r}, "--machine", "ijk", "--head", head, "--standoff", "6",
+                     "--bead-radius", "1", "--pitch", "0.5", "--check", "-q", "-o", "beads.nc"]) in (0, 1)
+        """)
+
+
+@pytest.mark.heavy
+def test_a_warm_cache_check_of_the_bathtub_sample_imports_no_trimesh(tmp_path):
+    """The same for ``ncfix samples/bathtub_273.nc --check`` (the start-up row of bench/run)."""
+    _warm_check(tmp_path, f"""
+        assert main([{str(SAMPLES / "bathtub_273.nc")!r}, "--check", "-q", "-o", "checked.nc"]) == 1
+        """)
+
+
 def test_auto_picks_the_cpu_without_importing_torch_when_no_driver_is_present(tmp_path):
     done = _run_python("""
         import sys

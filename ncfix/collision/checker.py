@@ -8,6 +8,8 @@ when an exact test says so. Design: docs/collision.md (the pieces, undecided pos
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import ctypes.util
 import os
 import sys
@@ -16,13 +18,12 @@ from dataclasses import dataclass, field
 
 import coal
 import numpy as np
-import trimesh
 
 from ncfix.collision import descent
 from ncfix.collision.deposit import BeadCells, BeadField, BeadShape, BeadStore
 from ncfix.collision.depth import DepthProbe
 from ncfix.collision.descent import HostTree
-from ncfix.collision.exact import ExactParts, clip_head
+from ncfix.collision.exact import ExactParts, cached_clip_head
 from ncfix.collision.exact_beads import BeadBuckets, candidates_free, first_bead_hits
 from ncfix.collision.grid import DistanceGrid, cached_distance_grid
 from ncfix.collision.head import HeadModel, SphereTree, cached_sphere_tree
@@ -31,6 +32,10 @@ from ncfix.collision.nested import Nested, mesh_bodies
 from ncfix.collision.proximity import cached_head_proximity
 from ncfix.collision.split import thread_count
 from ncfix.errors import ConfigError
+from ncfix.geometry.meshdata import Mesh, as_mesh
+
+if TYPE_CHECKING:
+    import trimesh
 
 # Octree cell (mm) of the tree's lowest inner level: a few balls each.
 LEAF_CELL_MM = 1.0
@@ -179,7 +184,7 @@ def tree_tensors(tree: SphereTree, device: str) -> TreeTensors:
 class Part:
     name: str  # "part:mold.stl"
     grid: DistanceGrid
-    mesh: trimesh.Trimesh
+    mesh: Mesh
 
 
 @dataclass
@@ -221,14 +226,14 @@ class Checker:
     wholly inside the other (``nested``) for parts; the exact signed distance from the bead
     centres to the clipped head (``exact_beads``) for beads.
 
-    head : closed trimesh in the head frame (tip at the origin, axis +Z)
+    head : closed mesh in the head frame (tip at the origin, axis +Z): a ``Mesh`` or a trimesh
     parts : (name, mesh, closed) in workpiece mm; names as the report shows them
 
     The grids, sphere trees and the clipped head's NearSurface come from the on-disk cache
     (``ncfix.cache``) when they were built before.
     """
 
-    def __init__(self, head: trimesh.Trimesh, model: HeadModel, parts: list[tuple[str, trimesh.Trimesh, bool]], *,
+    def __init__(self, head: Mesh | trimesh.Trimesh, model: HeadModel, parts: list[tuple[str, Mesh | trimesh.Trimesh, bool]], *,
                  pitch_mm: float, clearance_mm: float = 0.0, bead_radius_mm: float = 1.0,
                  tip_allowance_mm: float = 1.0, device: str = "cpu", part_bounds_mm: np.ndarray | None = None,
                  bead_drop_mm: float = 0.0, bead_shape: BeadShape | None = None) -> None:
@@ -246,15 +251,20 @@ class Checker:
             BeadShape(2.0 * self.bead_radius_mm, 2.0 * self.bead_radius_mm, self.bead_drop_mm)
         self.tip_allowance_mm = float(tip_allowance_mm)
         self.model = model
+        head = as_mesh(head)
+        parts = [(name, as_mesh(mesh), closed) for name, mesh, closed in parts]
         self.head = head
         self.rho_mm = float(np.linalg.norm(head.vertices, axis=1).max())
         self.tree = tree_tensors(cached_sphere_tree(model.centers_mm, model.radii_mm, LEAF_CELL_MM), self.device)
         self.parts = [Part(name, cached_distance_grid(mesh, pitch_mm, closed=closed, name=name, bounds_mm=part_bounds_mm),
                            mesh) for name, mesh, closed in parts]
+        # A point where a part's grid bounds the distance above zero is outside it: the depth of a
+        # colliding pose tests the others only.
         self.exact = ExactParts(head, {p.name: p.mesh for p in self.parts},
-                                open_parts={name for name, _, closed in parts if not closed})
+                                open_parts={name for name, _, closed in parts if not closed},
+                                maybe_inside={p.name: _maybe_inside(p.grid) for p in self.parts})
         # The head above the tip allowance: all that beads are tested against.
-        self.clipped_head = clip_head(head, self.tip_allowance_mm)
+        self.clipped_head = cached_clip_head(head, self.tip_allowance_mm)
         # One body inside the other (``nested``): every connected body of the head and of each part.
         head_bodies = mesh_bodies(head)
         self._nested = [Nested(head_bodies, mesh_bodies(mesh), closed) for _, mesh, closed in parts]
@@ -781,6 +791,12 @@ class Checker:
         return (np.concatenate([kept, pending]),
                 np.concatenate([np.full(len(kept), ALWAYS_SEEN, dtype=np.int64), np.asarray(pending_seq, np.int64)]),
                 brad)
+
+
+def _maybe_inside(grid: DistanceGrid):
+    """points (n, 3) -> (n,) bool: False where the grid's lower bound on the distance to its body
+    is above zero (the point is outside the body)."""
+    return lambda points: ~(grid.lower_bound_np(points) > 0.0)
 
 
 def _balls_box(host, C, R, lin, ang, pose, node, pad: float) -> np.ndarray:

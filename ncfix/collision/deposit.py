@@ -13,13 +13,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import Enum
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numba import njit
-from scipy.spatial import cKDTree
 
 from ncfix.geometry.cells import group_cells
 from ncfix.memory import ensure_fits
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 # Exact bead centres kept (the newest; BeadStore): 2**18 beads is about 65 m of deposited path at
 # the 0.5 mm pitch (beads every 0.25 mm), 6 MB of centres and about as much of k-d trees.
@@ -361,6 +364,8 @@ class BeadStore:
 
     def trees(self) -> list[tuple[cKDTree, np.ndarray]]:
         """(k-d tree, centres) of the exact levels, oldest first (trees built here when missing)."""
+        from scipy.spatial import cKDTree
+
         self._close()
         for level in self._levels:
             if level[1] is None:
@@ -442,6 +447,8 @@ class BeadCells:
 
     def near(self, centre_mm: np.ndarray, radius_mm: float) -> np.ndarray:
         """Indices (ascending) of the cells that may hold a bead within ``radius_mm`` of the point."""
+        from scipy.spatial import cKDTree
+
         if self._tree is None:
             self._tree = cKDTree(self.centre)
         idx = np.sort(np.asarray(self._tree.query_ball_point(centre_mm, radius_mm + self.widest), dtype=np.int64))

@@ -9,16 +9,23 @@ no decision depends on it.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from numba import njit
-import trimesh
 
+from ncfix import cache
 from ncfix.collision.grid import DistanceGrid
 from ncfix.collision.voxelize import distance_transform
+
+if TYPE_CHECKING:
+    import trimesh
 
 # Poses of a move whose depth is measured: this many, evenly spread, and its last. Depth changes no
 # faster than the head moves, so a pass is measured to within half the head's travel between them.
 MOVE_POSES = 8
+# The code the cached depth field comes from (with the grid's key, which covers the grid's code).
+DEPTH_SOURCES = ("ncfix.collision.depth", "ncfix.collision.voxelize")
 
 
 class DepthProbe:
@@ -27,7 +34,8 @@ class DepthProbe:
     Each part's distance grid marks the cells that may hold part material; the distance transform
     of those cells to the nearest unmarked one (an unmarked cell centre lies outside the part)
     gives, at a point's nearest cell centre, its depth to within about a cell diagonal. The field
-    is built the first time a part collision is reported (one EDT of the grid, ``inside_mm``). The
+    is made the first time a part collision is reported (one EDT of the grid, ``inside_mm``), and
+    kept in the on-disk cache beside a cached grid (it comes from the grid alone). The
     head is sampled at about one point per spacing² of its surface, a move at ``MOVE_POSES`` poses.
 
     head : trimesh in the head frame; grids : one DistanceGrid per part (the checker's)
@@ -43,8 +51,7 @@ class DepthProbe:
         """(nx, ny, nz) float32: at each marked cell of part k's grid, the distance to the nearest
         unmarked cell centre (0 on unmarked cells)."""
         if self._inside[k] is None:
-            grid = self.grids[k]
-            self._inside[k] = distance_transform(grid.dist_mm == 0, grid.pitch_mm)
+            self._inside[k] = inside_field(self.grids[k])
         return self._inside[k]
 
     def depth_mm(self, k: int, C: np.ndarray, R: np.ndarray) -> float:
@@ -56,6 +63,27 @@ class DepthProbe:
         R = np.ascontiguousarray(R, dtype=np.float64).reshape(-1, 3, 3)
         best = _deepest(self.points, C, R, field, np.asarray(grid.origin_mm, dtype=np.float64), float(grid.pitch_mm))
         return max(0.0, best - 0.5 * np.sqrt(3.0) * grid.pitch_mm) if best > 0 else 0.0
+
+
+def inside_field(grid: DistanceGrid) -> np.ndarray:
+    """``DepthProbe.inside_mm`` of one grid: read from the on-disk cache when the grid came from
+    it (keyed by the grid's own key, this code and the EDT's version), else computed."""
+
+    def build() -> np.ndarray:
+        return distance_transform(grid.dist_mm == 0, grid.pitch_mm)
+
+    if not grid.cache_key:
+        return build()
+    key = cache.make_key("depth", grid.cache_key, cache.fingerprint(*DEPTH_SOURCES),
+                         {package: cache.version(package) for package in ("numpy", "edt")})
+
+    def from_arrays(a: dict[str, np.ndarray]) -> np.ndarray | None:
+        field = a["inside_mm"]
+        return field if field.dtype == np.float32 and field.shape == grid.dist_mm.shape else None
+
+    field, _ = cache.cached("depth", key, ("inside_mm",), build, lambda f: {"inside_mm": f}, from_arrays,
+                            grid.cache_dir)
+    return field
 
 
 def _deepest(points, C, R, field, origin, pitch):  # pragma: no cover - compiled

@@ -12,21 +12,28 @@ exact). Poses: tip at C (workpiece mm), rotation R (3, 3); a head-frame point x 
 
 from __future__ import annotations
 
-from collections.abc import Collection, Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import coal
 import manifold3d
 import numpy as np
-import trimesh
+from numba import njit
 
+from ncfix import cache
+from ncfix.collision.near import _winding
 from ncfix.geometry.distance import winding_numbers
+from ncfix.geometry.meshdata import Mesh, as_mesh, component_labels
+
+if TYPE_CHECKING:
+    import trimesh
 
 # Boxes that rule out a body widened by this (mm): a vertex moved by a pose is off by ~1e-13 mm.
 _BOX_SLACK_MM = 1e-9
 
 
-def bvh(mesh: trimesh.Trimesh) -> coal.BVHModelOBBRSS:
+def bvh(mesh: Mesh | trimesh.Trimesh) -> coal.BVHModelOBBRSS:
     """coal's bounding-volume hierarchy of a mesh's triangles."""
     model = coal.BVHModelOBBRSS()
     model.beginModel(len(mesh.faces), len(mesh.vertices))
@@ -36,10 +43,10 @@ def bvh(mesh: trimesh.Trimesh) -> coal.BVHModelOBBRSS:
     return model
 
 
-def body_probes(mesh: trimesh.Trimesh) -> np.ndarray:
+def body_probes(mesh: Mesh | trimesh.Trimesh) -> np.ndarray:
     """(k, 3): one vertex of each connected body of a mesh (faces sharing an edge)."""
     faces = np.asarray(mesh.faces, dtype=np.int64)
-    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(faces))
+    labels = component_labels(faces)
     first = np.unique(labels, return_index=True)[1]
     return np.asarray(mesh.vertices, dtype=np.float64)[faces[first, 0]]
 
@@ -50,35 +57,73 @@ def in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return points[keep]
 
 
+def _windings(points, triangles):  # pragma: no cover - compiled
+    """Generalised winding number of each point (n, 3) with respect to the triangles (m, 3, 3)."""
+    out = np.empty(points.shape[0])
+    for i in range(points.shape[0]):
+        out[i] = _winding(points[i, 0], points[i, 1], points[i, 2], triangles)
+    return out
+
+
+_windings = njit(cache=True, nogil=True)(_windings)
+
+
+def inside(points: np.ndarray, triangles: np.ndarray, bounds: np.ndarray,
+           maybe: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
+    """(n,) bool: which points (n, 3) lie inside the closed mesh of these triangles (m, 3, 3):
+    winding number above one half. A point on or outside the mesh's box (2, 3) is outside, as is
+    one ``maybe`` (points -> (n,) bool) rules out: only a point that can be inside is tested."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    lo, hi = np.asarray(bounds, dtype=np.float64)
+    test = ((points > lo) & (points < hi)).all(axis=1)
+    if maybe is not None and test.any():
+        test[test] = maybe(points[test])
+    out = np.zeros(len(points), dtype=bool)
+    if test.any():
+        out[test] = _windings(np.ascontiguousarray(points[test]), np.ascontiguousarray(triangles)) > 0.5
+    return out
+
+
 @dataclass
 class ExactPart:
     name: str
-    mesh: trimesh.Trimesh
+    mesh: Mesh
     bvh: coal.BVHModelOBBRSS
     closed: bool  # bounds a volume (an open part is a surface: nothing is inside it)
     probes: np.ndarray  # (k, 3) one vertex of each connected body
+    triangles: np.ndarray  # (m, 3, 3) float64
+    bounds: np.ndarray  # (2, 3) float64
+    # points (n, 3) -> (n,) bool, False where a point is certainly outside (a distance bound), or None
+    maybe_inside: Callable[[np.ndarray], np.ndarray] | None = None
 
 
 class ExactParts:
     """Exact clearance of a head pose to part meshes.
 
-    head : closed trimesh in the head frame (tip at the origin, axis +Z)
-    parts : name -> trimesh in workpiece mm
+    head : closed mesh in the head frame (tip at the origin, axis +Z; a ``Mesh`` or a trimesh)
+    parts : name -> mesh in workpiece mm
     open_parts : names of parts that do not bound a volume (surfaces only)
+    maybe_inside : name -> points (n, 3) -> (n,) bool, False for points certainly outside that
+        part (its distance grid's bound above zero); only a speed-up of the depth's inside test
     """
 
-    def __init__(self, head: trimesh.Trimesh, parts: Mapping[str, trimesh.Trimesh], *,
-                 open_parts: Collection[str] = ()) -> None:
+    def __init__(self, head, parts: Mapping, *, open_parts: Collection[str] = (),
+                 maybe_inside: Mapping[str, Callable[[np.ndarray], np.ndarray]] | None = None) -> None:
+        head = as_mesh(head)
         self.head = head
         self.head_bvh = bvh(head)
         self._head_triangles = np.asarray(head.triangles, dtype=np.float64)
         self._head_vertices = np.asarray(head.vertices, dtype=np.float64)
         self._head_probes = body_probes(head)
-        self._head_lo, self._head_hi = np.array(head.bounds, dtype=np.float64)
-        self.parts = [
-            ExactPart(name, mesh, bvh(mesh), name not in open_parts, body_probes(mesh))
-            for name, mesh in parts.items()
-        ]
+        self._head_bounds = np.array(head.bounds, dtype=np.float64)
+        self._head_lo, self._head_hi = self._head_bounds
+        maybe_inside = maybe_inside or {}
+        self.parts = []
+        for name, mesh in parts.items():
+            mesh = as_mesh(mesh)
+            self.parts.append(ExactPart(name, mesh, bvh(mesh), name not in open_parts, body_probes(mesh),
+                                        np.asarray(mesh.triangles, dtype=np.float64),
+                                        np.array(mesh.bounds, dtype=np.float64), maybe_inside.get(name)))
         self._dreq = coal.DistanceRequest()
         self.collision_request = coal.CollisionRequest()
 
@@ -147,25 +192,28 @@ class ExactParts:
             return True
         if not part.closed:
             return False
-        lo, hi = np.array(part.mesh.bounds, dtype=np.float64)
+        lo, hi = part.bounds
         world = in_box(c + self._head_probes @ r.T, lo, hi)
-        return bool(len(world) and (winding_numbers(world, np.asarray(part.mesh.triangles)) > 0.5).any())
+        return bool(len(world) and (winding_numbers(world, part.triangles) > 0.5).any())
 
     def _depth(self, part: ExactPart, c: np.ndarray, r: np.ndarray) -> float:
         """Deepest head vertex inside the part / part vertex inside the head (mm, >= 0)."""
         depth = 0.0
         head_world = c + self._head_vertices @ r.T
-        inside = part.mesh.contains(head_world) if part.closed else np.zeros(len(head_world), dtype=bool)
-        if inside.any():
-            depth = max(depth, self._distance_to(part.bvh, head_world[inside]).max())
+        if part.closed:
+            within = inside(head_world, part.triangles, part.bounds, part.maybe_inside)
+        else:
+            within = np.zeros(len(head_world), dtype=bool)
+        if within.any():
+            depth = max(depth, self._distance_to(part.bvh, head_world[within]).max())
         lo, hi = head_world.min(axis=0), head_world.max(axis=0)
         pv = np.asarray(part.mesh.vertices)
         near = pv[((pv >= lo) & (pv <= hi)).all(axis=1)]
         if len(near):
             local = (near - c) @ r
-            inside = self.head.contains(local)
-            if inside.any():
-                depth = max(depth, self._distance_to(self.head_bvh, local[inside]).max())
+            within = inside(local, self._head_triangles, self._head_bounds)
+            if within.any():
+                depth = max(depth, self._distance_to(self.head_bvh, local[within]).max())
         return float(depth)
 
     def _distance_to(self, model: coal.BVHModelOBBRSS, points: np.ndarray) -> np.ndarray:
@@ -180,10 +228,12 @@ class ExactParts:
         return np.abs(out)
 
 
-def clip_head(head: trimesh.Trimesh, height_mm: float) -> trimesh.Trimesh:
+def clip_head(head: Mesh | trimesh.Trimesh, height_mm: float) -> trimesh.Trimesh:
     """The head above z = height_mm (head frame), capped so it stays a closed solid (manifold3d)."""
+    import trimesh
+
     if height_mm <= float(head.bounds[0, 2]):
-        return head
+        return head if isinstance(head, trimesh.Trimesh) else head.to_trimesh()
     solid = manifold3d.Manifold(
         manifold3d.Mesh64(
             vert_properties=np.asarray(head.vertices, dtype=np.float64),
@@ -197,3 +247,26 @@ def clip_head(head: trimesh.Trimesh, height_mm: float) -> trimesh.Trimesh:
     if len(faces) == 0:
         raise ValueError(f"the tip allowance {height_mm} mm removes the whole head")
     return trimesh.Trimesh(np.asarray(kept.vert_properties[:, :3], dtype=np.float64), faces)
+
+
+# The code the clipped head comes from.
+CLIP_SOURCES = ("ncfix.collision.exact", "ncfix.geometry.meshdata")
+
+
+def cached_clip_head(head, height_mm: float, cache_dir: str | None = None) -> Mesh:
+    """``clip_head``'s mesh as arrays, read from the on-disk cache when this head was clipped at
+    this height before (trimesh's processing of the capped mesh is then not imported)."""
+    head = as_mesh(head)
+    key = cache.make_key("clip", head.vertices, head.faces, float(height_mm), cache.fingerprint(*CLIP_SOURCES),
+                         {package: cache.version(package) for package in ("numpy", "trimesh", "manifold3d")})
+
+    def from_arrays(a: dict[str, np.ndarray]) -> Mesh | None:
+        v, f = a["vertices"], a["faces"]
+        if v.dtype != np.float64 or f.dtype != np.int64 or v.ndim != 2 or f.ndim != 2 or v.shape[1:] != (3,) \
+                or f.shape[1:] != (3,):
+            return None
+        return Mesh(v, f)
+
+    clipped, _ = cache.cached("clip", key, ("vertices", "faces"), lambda: as_mesh(clip_head(head, height_mm)),
+                              lambda m: {"vertices": m.vertices, "faces": m.faces}, from_arrays, cache_dir)
+    return clipped

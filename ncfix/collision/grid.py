@@ -9,16 +9,20 @@ The proof is on ``DistanceGrid``, the exact band near the body on ``tighten_near
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from dataclasses import dataclass
 
 import numpy as np
-import trimesh
 
 from ncfix import cache
 from ncfix.collision.near import surface_distances
 from ncfix.collision.voxelize import EDT_SLACK_MM, distance_transform, grid_frame, surface_cells, voxelize
 from ncfix.geometry.tolerances import TOLERANCES
 from ncfix.memory import ensure_fits, grid_cells
+
+if TYPE_CHECKING:
+    import trimesh
 
 # Empty cells around the body: near it, lookups then stay inside the grid (tighter bounds).
 GRID_PAD_CELLS = 6
@@ -65,6 +69,10 @@ class DistanceGrid:
     pitch_mm: float
     name: str = ""
     body_bounds_mm: np.ndarray | None = None  # (2, 3) box holding the whole body
+    # The on-disk cache's key and folder of this grid (key "" when it was built outside the
+    # cache): what is derived from the grid alone (``depth.DepthProbe``'s field) is cached by it.
+    cache_key: str = ""
+    cache_dir: str | None = None
     _tensors: dict | None = None
 
     @property
@@ -240,4 +248,5 @@ def cached_distance_grid(mesh: trimesh.Trimesh, pitch_mm: float, *, closed: bool
     grid, _ = cache.cached("grid", key, _GRID_ARRAYS,
                            lambda: build_distance_grid(mesh, pitch_mm, closed=closed, name=name, bounds_mm=bounds_mm),
                            to_arrays, from_arrays, cache_dir, what=what)
+    grid.cache_key, grid.cache_dir = key, cache_dir
     return grid

@@ -9,15 +9,17 @@ bounding spheres (``SphereTree``) for a coarse first test. How they are built: `
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
-from scipy.spatial import cKDTree
 
 from ncfix import cache
 from ncfix.collision.voxelize import grid_frame, surface_cells, voxelize
 from ncfix.geometry.tolerances import TOLERANCES
 from ncfix.memory import ensure_fits, grid_cells
+
+if TYPE_CHECKING:
+    import trimesh
 
 ZONE_NAMES = ("lower", "middle", "upper")
 # Peak bytes per cell of the head's voxel grid while the model is built (38-42 measured on the
@@ -98,6 +100,8 @@ class HeadModel:
 
     def covers(self, points_mm: np.ndarray) -> np.ndarray:
         """Whether each head-frame point (n, 3) lies in some ball -> (n,) bool."""
+        from scipy.spatial import cKDTree
+
         pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
         tree = cKDTree(self.centers_mm)
         out = np.zeros(len(pts), dtype=bool)

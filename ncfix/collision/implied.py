@@ -26,11 +26,14 @@ fixed histograms.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ncfix.collision.deposit import axial_moves, bead_samples
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 SPACING_MM = 0.25
 CONE_DEG = 60.0
@@ -116,6 +119,8 @@ class ImpliedBead:
         self._add(laid)
 
     def _add(self, pts: np.ndarray) -> None:
+        from scipy.spatial import cKDTree
+
         self._open.append(pts)
         self._open_n += len(pts)
         if self._open_n < LEVEL_MAX:
@@ -132,6 +137,8 @@ class ImpliedBead:
         """The drop from each tip P (q, 3) along N (q, 3) to the highest path point laid before it
         in its cone: the kept points, and this batch's points ``laid`` (m, 3) by moves ``laid_by``
         (m,) before the tip's own ``move`` (q,)."""
+        from scipy.spatial import cKDTree
+
         groups = [(pts, tree, None) for pts, tree in self._levels]
         if self._open:
             pts = np.concatenate(self._open)

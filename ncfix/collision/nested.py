@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-import trimesh
 
 from ncfix.collision.near import _winding
+from ncfix.geometry.meshdata import component_labels
 
 # Box tests widened by this (mm): a vertex placed by the pose's rotation is off by ~1e-13 mm.
 SLACK_MM = 1e-9
@@ -47,12 +47,12 @@ class MeshBodies:
         return len(self.probe)
 
 
-def mesh_bodies(mesh: trimesh.Trimesh) -> MeshBodies:
+def mesh_bodies(mesh) -> MeshBodies:
     """Split a mesh into its connected bodies (faces sharing an edge); vectorised, as a badly
     exported part may hold many thousands of them."""
     faces = np.asarray(mesh.faces, dtype=np.int64)
     verts = np.asarray(mesh.vertices, dtype=np.float64)
-    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(faces))
+    labels = component_labels(faces)
     order = np.argsort(labels, kind="stable")
     faces, labels = faces[order], labels[order]
     count = int(labels.max()) + 1 if len(labels) else 0

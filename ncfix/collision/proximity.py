@@ -9,8 +9,9 @@ test".
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import trimesh
 from numba import njit
 
 from ncfix import cache
@@ -18,6 +19,9 @@ from ncfix.collision import descent, near
 from ncfix.collision.grid import DistanceGrid
 from ncfix.collision.head import build_sphere_tree, leaf_order
 from ncfix.collision.near import _cell_lists, _tri_d2
+
+if TYPE_CHECKING:
+    import trimesh
 
 # The head's triangles are split until no edge is longer than this (mm): small triangles have
 # tight balls (the tree clears them) and boxes of a few cells.
@@ -213,6 +217,8 @@ def build_arrays(head: trimesh.Trimesh, part_triangles: np.ndarray, cap_mm: floa
     cells of ``CELL_MM`` (larger for a large part: ``near._cell_lists``), each listing every part
     triangle within cap + the widest leaf radius of any of its points (a leaf looks up the cell of
     its ball's centre)."""
+    import trimesh
+
     vertices, faces = trimesh.remesh.subdivide_to_size(np.asarray(head.vertices, dtype=np.float64),
                                                        np.asarray(head.faces, dtype=np.int64), HEAD_EDGE_MM)
     tris = np.asarray(vertices, dtype=np.float64)[faces]

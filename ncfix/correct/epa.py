@@ -24,6 +24,7 @@ from scipy.spatial import HalfspaceIntersection
 from ncfix.collision.near import tri_closest
 from ncfix.correct.decompose import Decomposition, decompose
 from ncfix.geometry.frames import angle_between_deg, axis_rotation
+from ncfix.geometry.meshdata import Mesh, as_trimesh
 
 RotationOf = Callable[[np.ndarray], np.ndarray]
 IsFree = Callable[[np.ndarray], np.ndarray]
@@ -84,14 +85,15 @@ class EpaModel:
 
     def __init__(
         self,
-        head_mesh: trimesh.Trimesh,
-        parts: list[tuple[str, trimesh.Trimesh]],
+        head_mesh: trimesh.Trimesh | Mesh,
+        parts: list[tuple[str, trimesh.Trimesh | Mesh]],
         *,
         threshold: float = 0.05,
         cache_dir: str | Path | None = None,
         bead_radius_mm: float = 1.0,
         tip_allowance_mm: float = 1.0,
     ):
+        head_mesh = as_trimesh(head_mesh)
         hull = head_mesh.convex_hull
         self._head_points = np.asarray(hull.vertices, dtype=np.float64)
         # No head point is farther from the tip: callers gather the beads within this (plus a radius).
@@ -116,7 +118,7 @@ class EpaModel:
         self.cached = True
         self.decompositions: list[tuple[str, Decomposition]] = []  # per part, as ``decompose`` gave it
         for name, mesh in parts:
-            result = decompose(mesh, threshold=threshold, cache_dir=cache_dir, name=name)
+            result = decompose(as_trimesh(mesh), threshold=threshold, cache_dir=cache_dir, name=name)
             self.decompositions.append((name, result))
             self.decompose_seconds += result.seconds
             self.cached &= result.cached

@@ -9,23 +9,32 @@ Decisions, so that users and the next stages know what a mesh means:
   (``LoadedMesh.closed`` is False): ncfix checks the head against its triangles but cannot tell
   its inside from its outside, so a head buried inside it is not seen; a warning says so.
 - Warnings are returned as plain sentences in ``LoadedMesh.warnings`` (the CLI prints them).
+
+Reading and repairing use trimesh; the result (the arrays, closedness and warnings) is kept in the
+on-disk cache under the file's exact bytes, so that a run whose every model comes from the cache
+does not import trimesh at all (``ncfix.geometry.meshdata``).
 """
 
 from __future__ import annotations
 
+import json
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
-import trimesh
 
+from ncfix import cache
 from ncfix.errors import GeometryError
 from ncfix.geometry.distance import point_mesh_distance
 from ncfix.geometry.frames import rotation_between
+from ncfix.geometry.meshdata import Mesh
 from ncfix.geometry.place import parse
 from ncfix.geometry.tolerances import TOLERANCES
+
+if TYPE_CHECKING:
+    import trimesh
 
 Role = Literal["head", "part"]
 
@@ -33,22 +42,30 @@ Role = Literal["head", "part"]
 MESH_FORMATS: dict[str, str] = {".stl": "stl", ".obj": "obj"}
 
 _OPTION = {"head": "--head", "part": "--part", "platform": "--platform"}
+# The code a loaded mesh comes from: editing any of these files makes every cached one a miss.
+MESH_SOURCES = ("ncfix.geometry.mesh", "ncfix.geometry.meshdata", "ncfix.geometry.tolerances")
+_MESH_ARRAYS = ("vertices", "faces", "closed", "warnings")
 
 
 @dataclass
 class LoadedMesh:
     """A validated mesh and what was done to it.
 
-    mesh : trimesh.Trimesh, vertices (n, 3) float64 in the file's units and frame
+    arrays : the mesh (``Mesh``: vertices (n, 3) float64 in the file's units and frame, faces)
     closed : True when the mesh bounds a volume (watertight, consistently wound)
     warnings : plain sentences, each naming the file
     """
 
-    mesh: trimesh.Trimesh
+    arrays: Mesh
     name: str
     role: Role
     closed: bool
     warnings: list[str] = field(default_factory=list)
+
+    @property
+    def mesh(self) -> trimesh.Trimesh:
+        """The mesh as a ``trimesh.Trimesh`` (made on first use: it imports trimesh)."""
+        return self.arrays.to_trimesh()
 
 
 def load_mesh(path: str | Path, role: Role | Literal["platform"], base: np.ndarray | None = None) -> LoadedMesh:
@@ -77,7 +94,7 @@ def load_mesh(path: str | Path, role: Role | Literal["platform"], base: np.ndarr
     if base is not None:
         matrix = base if matrix is None else matrix @ base
     if matrix is not None:
-        loaded.mesh.apply_transform(matrix)  # a rotation and a move: the winding stays outward
+        loaded.arrays.apply_transform(matrix)  # a rotation and a move: the winding stays outward
     return loaded
 
 
@@ -106,11 +123,39 @@ def _load_file(path: Path, role: Role, option: str) -> LoadedMesh:
             where=where,
             fix=f"export the {role} as one of {known}",
         )
-    raw = _read_triangles(path, MESH_FORMATS[suffix], role)
-    return _validate(raw, where, role)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise GeometryError(f"cannot read the {role} mesh: {exc.strerror or exc}", where=where,
+                            fix="check the file's permissions") from None
+    key = cache.make_key("mesh", np.frombuffer(data, dtype=np.uint8), MESH_FORMATS[suffix], role, where,
+                         cache.fingerprint(*MESH_SOURCES),
+                         {package: cache.version(package) for package in ("numpy", "trimesh")})
+
+    def build() -> LoadedMesh:
+        return _validate(_read_triangles(path, MESH_FORMATS[suffix], role), where, role)
+
+    def to_arrays(loaded: LoadedMesh) -> dict[str, np.ndarray]:
+        text = json.dumps(loaded.warnings).encode("utf-8")
+        return {"vertices": loaded.arrays.vertices, "faces": loaded.arrays.faces,
+                "closed": np.array(loaded.closed), "warnings": np.frombuffer(text, dtype=np.uint8)}
+
+    def from_arrays(a: dict[str, np.ndarray]) -> LoadedMesh | None:
+        v, f = a["vertices"], a["faces"]
+        if v.dtype != np.float64 or f.dtype != np.int64 or v.ndim != 2 or f.ndim != 2 \
+                or v.shape[1] != 3 or f.shape[1] != 3 or a["closed"].dtype != np.bool_:
+            return None
+        said = json.loads(a["warnings"].tobytes().decode("utf-8"))
+        # Copies: a placement moves the vertices in place, never in the cache file.
+        return LoadedMesh(Mesh(v.copy(), f.copy()), where, role, bool(a["closed"]), [str(w) for w in said])
+
+    loaded, _ = cache.cached("mesh", key, _MESH_ARRAYS, build, to_arrays, from_arrays)
+    return loaded
 
 
 def _read_triangles(path: Path, file_type: str, role: Role) -> trimesh.Trimesh:
+    import trimesh
+
     not_a_mesh = GeometryError(
         f"no triangles found: the file is not a {file_type.upper()} mesh",
         where=str(path),
@@ -132,6 +177,8 @@ def _read_triangles(path: Path, file_type: str, role: Role) -> trimesh.Trimesh:
 
 
 def _validate(raw: trimesh.Trimesh, where: str, role: Role) -> LoadedMesh:
+    import trimesh
+
     warnings: list[str] = []
     vertices = np.asarray(raw.vertices, dtype=np.float64)
     faces = np.asarray(raw.faces, dtype=np.int64)
@@ -187,7 +234,8 @@ def _validate(raw: trimesh.Trimesh, where: str, role: Role) -> LoadedMesh:
             warnings.append(
                 f"{where}: the head has {bodies} separate shells; they are treated as one solid"
             )
-    return LoadedMesh(mesh=mesh, name=where, role=role, closed=closed, warnings=warnings)
+    arrays = Mesh(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64))
+    return LoadedMesh(arrays=arrays, name=where, role=role, closed=closed, warnings=warnings)
 
 
 def _open_edge_count(mesh: trimesh.Trimesh) -> int:
@@ -198,7 +246,7 @@ def _open_edge_count(mesh: trimesh.Trimesh) -> int:
     return int((counts != 2).sum())
 
 
-def find_tip(mesh: trimesh.Trimesh, axis: np.ndarray) -> np.ndarray:
+def find_tip(mesh: Mesh | trimesh.Trimesh, axis: np.ndarray) -> np.ndarray:
     """The lowest point of a head along ``axis``: the centroid of the vertices within the tip tolerance.
 
     axis : (3,) float64, tip -> head
@@ -237,14 +285,14 @@ def orient_head(
     transform = np.eye(4)
     transform[:3, :3] = rotation
     transform[:3, 3] = -rotation @ tip
-    mesh = loaded.mesh.copy()
+    mesh = loaded.arrays.copy()
     mesh.apply_transform(transform)
 
     tol = TOLERANCES.head_tip_mm
     warnings = list(loaded.warnings)
     lowest = float(mesh.vertices[:, 2].min())
     if lowest < -tol:
-        suggestion = find_tip(loaded.mesh, axis)
+        suggestion = find_tip(loaded.arrays, axis)
         raise GeometryError(
             f"the head reaches {-lowest:.3g} mm below the tip {_fmt(tip)} along the axis {_fmt(axis)}",
             where=where,
@@ -263,7 +311,7 @@ def orient_head(
                 f"{where}: the tip {_fmt(tip)} is {gap:.3g} mm away from the head mesh; "
                 "check --head-tip"
             )
-    return LoadedMesh(mesh=mesh, name=where, role=loaded.role, closed=loaded.closed, warnings=warnings)
+    return LoadedMesh(arrays=mesh, name=where, role=loaded.role, closed=loaded.closed, warnings=warnings)
 
 
 def load_head(
@@ -287,7 +335,7 @@ def check_part_overlaps(
     """
     lo = np.asarray(bbox_min_mm, dtype=np.float64)
     hi = np.asarray(bbox_max_mm, dtype=np.float64)
-    plo, phi = part.mesh.bounds
+    plo, phi = part.arrays.bounds
     gap = np.maximum(0.0, np.maximum(plo - hi, lo - phi))
     distance = float(np.linalg.norm(gap))
     warnings: list[str] = []

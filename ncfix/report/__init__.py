@@ -16,6 +16,8 @@ from ncfix.version import __version__
 if TYPE_CHECKING:
     import trimesh
 
+    from ncfix.geometry.meshdata import Mesh
+
     from ncfix.config import Options
     from ncfix.nc.chunk import Chunk
 
@@ -190,7 +192,7 @@ class Report:
         """
         self.trace.add(lines, points, tilt_deg, step_deg, clearance_mm)
 
-    def add_part_preview(self, name: str, mesh: "trimesh.Trimesh") -> None:
+    def add_part_preview(self, name: str, mesh: Mesh | trimesh.Trimesh) -> None:
         """Keep a copy of a part mesh with at most ``PREVIEW_FACES`` triangles for the 3-D picture."""
         vertices, faces = decimate(np.asarray(mesh.vertices), np.asarray(mesh.faces), PREVIEW_FACES)
         self.previews.append(PartPreview(name, vertices, faces, int(len(mesh.faces))))
