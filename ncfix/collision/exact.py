@@ -107,7 +107,7 @@ class ExactParts:
         part (its distance grid's bound above zero); only a speed-up of the depth's inside test
     """
 
-    def __init__(self, head, parts: Mapping, *, open_parts: Collection[str] = (),
+    def __init__(self, head: Mesh | trimesh.Trimesh, parts: Mapping[str, Mesh | trimesh.Trimesh], *, open_parts: Collection[str] = (),
                  maybe_inside: Mapping[str, Callable[[np.ndarray], np.ndarray]] | None = None) -> None:
         head = as_mesh(head)
         self.head = head
