@@ -28,8 +28,8 @@ CHUNK_LINES = 4096  # lines read and interpreted together; memory is bounded by 
 @dataclass(frozen=True)
 class ProgramPoints:
     """Where a program's points are (``program_box``): the box of its programmed points and tips
-    (arcs: their whole circle), and the cubes (``collision.grid.cube_cells``) holding those and
-    points along its arcs."""
+    (arcs: their whole circle), and the cubes (``collision.grid.cube_cells``) holding its points,
+    tips and points along its arcs."""
 
     box: np.ndarray  # (2, 3) mm
     cubes: np.ndarray  # (k, 3) int64
@@ -73,7 +73,8 @@ def program_box(stream: BinaryIO, profile: Profile, options: Options, source: st
         chunks = read_chunks(stream, Interpreter(profile, source, options.deposit_codes))
         for chunk, poses in program_poses(chunks, PoseMap(profile)):
             P = poses.P
-            pts = [P, P + options.standoff * poses.N]
+            tips = [P, P + options.standoff * poses.N]
+            pts = list(tips)
             arc = chunk.arc[poses.rows]
             on_arc = np.isfinite(arc[:, 0])
             if on_arc.any():
@@ -84,7 +85,7 @@ def program_box(stream: BinaryIO, profile: Profile, options: Options, source: st
             if len(pts):
                 lo, hi = np.minimum(lo, pts.min(axis=0)), np.maximum(hi, pts.max(axis=0))
             along = _arc_samples(P, last, arc, on_arc, REACH_CELL_MM, arc_extent, arc_points)
-            cubes.append(cube_cells(np.concatenate([pts, along]), REACH_CELL_MM))
+            cubes.append(cube_cells(np.concatenate([*tips, along]), REACH_CELL_MM))
             if sum(len(c) for c in cubes) > 4 * len(cubes[0]) + 65536:  # merged now and then: memory follows the cubes
                 cubes = [np.unique(np.concatenate(cubes), axis=0)]
             last = P[-1]
