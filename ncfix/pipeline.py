@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from collections.abc import Callable, Iterable, Iterator
 from itertools import islice
 from pathlib import Path
@@ -24,6 +25,16 @@ AUTO = "auto"  # --machine auto: the profile is chosen from the program (ncfix.n
 CHUNK_LINES = 4096  # lines read and interpreted together; memory is bounded by this and the window
 
 
+@dataclass(frozen=True)
+class ProgramPoints:
+    """Where a program's points are (``program_box``): the box of its programmed points and tips
+    (arcs: their whole circle), and the cubes (``collision.grid.cube_cells``) holding its points,
+    tips and points along its arcs."""
+
+    box: np.ndarray  # (2, 3) mm
+    cubes: np.ndarray  # (k, 3) int64
+
+
 class Stage(Protocol):
     """A streaming stage: takes chunks in order, gives back the chunks it is done with."""
 
@@ -43,10 +54,13 @@ def read_chunks(stream: BinaryIO, interpreter: Interpreter, lines_per_chunk: int
         lineno += len(lines)
 
 
-def program_box(stream: BinaryIO, profile: Profile, options: Options, source: str) -> np.ndarray | None:
-    """(2, 3) box of every programmed point P and tip C = P + h·N (arcs: their whole circle), read
-    in a first pass over a seekable file (which is then rewound); None for a pipe or a program
-    without a checkable motion block. The part grids are cropped to it (``build_stages``)."""
+def program_box(stream: BinaryIO, profile: Profile, options: Options, source: str) -> ProgramPoints | None:
+    """Where the program's points are, read in a first pass over a seekable file (which is then
+    rewound); None for a pipe or a program without a checkable motion block. The part grids are
+    cropped to the box and their exact band made where the head can reach (``build_stages``)."""
+    from ncfix.collision.grid import REACH_CELL_MM, cube_cells
+    from ncfix.collision.path import arc_extent, arc_points
+
     try:
         if not stream.seekable():
             return None
@@ -54,11 +68,13 @@ def program_box(stream: BinaryIO, profile: Profile, options: Options, source: st
     except (AttributeError, OSError, ValueError):
         return None
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    cubes, last = [np.zeros((0, 3), dtype=np.int64)], None
     try:
         chunks = read_chunks(stream, Interpreter(profile, source, options.deposit_codes))
         for chunk, poses in program_poses(chunks, PoseMap(profile)):
             P = poses.P
-            pts = [P, P + options.standoff * poses.N]
+            tips = [P, P + options.standoff * poses.N]
+            pts = list(tips)
             arc = chunk.arc[poses.rows]
             on_arc = np.isfinite(arc[:, 0])
             if on_arc.any():
@@ -68,9 +84,33 @@ def program_box(stream: BinaryIO, profile: Profile, options: Options, source: st
             pts = pts[np.isfinite(pts).all(axis=1)]
             if len(pts):
                 lo, hi = np.minimum(lo, pts.min(axis=0)), np.maximum(hi, pts.max(axis=0))
+            along = _arc_samples(P, last, arc, on_arc, REACH_CELL_MM, arc_extent, arc_points)
+            cubes.append(cube_cells(np.concatenate([*tips, along]), REACH_CELL_MM))
+            if sum(len(c) for c in cubes) > 4 * len(cubes[0]) + 65536:  # merged now and then: memory follows the cubes
+                cubes = [np.unique(np.concatenate(cubes), axis=0)]
+            last = P[-1]
     finally:
         stream.seek(start)
-    return np.array([lo, hi]) if np.isfinite(lo).all() else None
+    if not np.isfinite(lo).all():
+        return None
+    return ProgramPoints(np.array([lo, hi]), np.unique(np.concatenate(cubes), axis=0))
+
+
+def _arc_samples(P: np.ndarray, last: np.ndarray | None, arc: np.ndarray, on_arc: np.ndarray, spacing_mm: float,
+                 arc_extent, arc_points) -> np.ndarray:
+    """Points along the arcs of a chunk's poses, at most ``spacing_mm`` apart along each (every
+    point of an arc within half of it of one): where the head runs between an arc's ends."""
+    rows = np.nonzero(on_arc)[0]
+    starts = np.concatenate([last[None] if last is not None else np.full((1, 3), np.nan), P[:-1]])[rows]
+    keep = np.isfinite(starts).all(axis=1) & np.isfinite(P[rows]).all(axis=1)
+    rows, starts = rows[keep], starts[keep]
+    if not len(rows):
+        return np.zeros((0, 3))
+    _, length = arc_extent(starts, P[rows], arc[rows])
+    count = np.ceil(length / spacing_mm).astype(np.int64) + 1
+    k = np.repeat(np.arange(len(rows)), count)
+    t = (np.arange(len(k)) - np.repeat(np.cumsum(count) - count, count)) / np.repeat(np.maximum(count - 1, 1), count)
+    return arc_points(starts[k], P[rows][k], arc[rows][k], t)
 
 
 def load_parts(options: Options, profile: Profile) -> list:
@@ -128,14 +168,15 @@ class Tracker:
             self.progress(self.bytes_done, self.lines_done)
 
 
-def build_stages(options: Options, profile: Profile, report: Report, box=None) -> list[Stage]:
+def build_stages(options: Options, profile: Profile, report: Report, where: ProgramPoints | None = None) -> list[Stage]:
     """The window stages for these options: none without --head, else the collision checker.
-    ``box``: where the program's points and tips are (``program_box``), to crop the part grids
-    to what the head can reach from them."""
+    ``where``: where the program's points are (``program_box``), to crop the part grids to what
+    the head can reach from them."""
     if options.head is None:
         return []
     from ncfix.collision.checker import Checker, resolve_device
     from ncfix.collision.deposit import BeadShape
+    from ncfix.collision.grid import REACH_CELL_MM, Reach
     from ncfix.collision.head import cached_head_model
     from ncfix.collision.stage import CheckStage
     from ncfix.geometry.mesh import load_head
@@ -155,16 +196,18 @@ def build_stages(options: Options, profile: Profile, report: Report, box=None) -
         loaded_parts.append(loaded)
     model = cached_head_model(head.arrays, options.pitch, name=Path(options.head).name)
     report.details.append(model.summary())
-    reach_box = None
-    if box is not None:
+    reach_box = part_reach = None
+    if where is not None:
         # The head lies within rho of its tip; with --pivot point a tilted tip stays within h of P.
         rho = float(np.linalg.norm(head.arrays.vertices, axis=1).max())
         reach = rho + options.standoff + options.clearance + 2 * options.pitch
-        reach_box = np.array([box[0] - reach, box[1] + reach])
+        reach_box = np.array([where.box[0] - reach, where.box[1] + reach])
+        # Points along arcs lie within half a cube of one sampled.
+        part_reach = Reach(where.cubes, REACH_CELL_MM, reach + 0.5 * REACH_CELL_MM)
     bead = BeadShape.stated(options.bead_radius, options.bead_width, options.bead_height, options.standoff)
     checker = Checker(head.arrays, model, parts, pitch_mm=options.pitch, clearance_mm=options.clearance,
                       bead_radius_mm=bead.radius_mm, tip_allowance_mm=options.tip_allowance,
-                      device=options.device, part_bounds_mm=reach_box, bead_drop_mm=bead.drop_mm,
+                      device=options.device, part_bounds_mm=reach_box, part_reach=part_reach, bead_drop_mm=bead.drop_mm,
                       bead_shape=bead)
     if options.check:
         return [CheckStage(checker, profile, options, report, placed_parts=loaded_parts)]
@@ -194,8 +237,9 @@ def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>",
     if note is not None:
         report.notes.append(note)
     interpreter = Interpreter(profile, source, options.deposit_codes)
-    box = program_box(src, profile, options, source) if options.head is not None and (options.part or options.platform) else None
-    stages = build_stages(options, profile, report, box)
+    where = program_box(src, profile, options, source) if options.head is not None and (options.part or options.platform) \
+        else None
+    stages = build_stages(options, profile, report, where)
     writer = Writer(profile)
     tracker = Tracker(progress) if progress is not None else None
     for stage in stages:

@@ -20,7 +20,7 @@ from ncfix.collision import depth as depth_module
 from ncfix.collision import grid as grid_module
 from ncfix.collision import head as head_module
 from ncfix.collision import proximity as proximity_module
-from ncfix.collision.grid import build_distance_grid, cached_distance_grid
+from ncfix.collision.grid import Reach, build_distance_grid, cached_distance_grid
 from ncfix.collision.head import build_head_model, build_sphere_tree, cached_head_model, cached_sphere_tree
 from ncfix.collision.near import NearSurface, cached_near_surface
 
@@ -100,6 +100,28 @@ def test_the_depth_field_of_a_cached_grid_is_cached_beside_it(tmp_path, monkeypa
         depth_module.inside_field(other)
 
 
+def test_a_program_with_another_reach_does_not_read_a_grid_made_for_the_first(tmp_path, monkeypatch):
+    """The exact band is made only where a program can reach (``grid.Reach``): a second program
+    reaching elsewhere over the same crop gets its own grid, and the first reads its own back."""
+    mesh = _l_shape()
+    first = Reach.of_points(np.array([[-9.0, -2.0, 6.0], [-7.0, -2.0, 6.0]]), 5.0)
+    second = Reach.of_points(np.array([[2.0, 8.0, 0.0], [2.0, 12.0, 0.0]]), 5.0)  # in the L's inner corner
+    kw = dict(name="part:l", bounds_mm=np.array([[-15.0, -10.0, -9.0], [15.0, 20.0, 9.0]]), cache_dir=tmp_path)
+    cached_distance_grid(mesh, 0.5, reach=first, **kw)
+    got = cached_distance_grid(mesh, 0.5, reach=second, **kw)
+    assert len(_files(tmp_path, "grid")) == 2
+    built = build_distance_grid(mesh, 0.5, name="part:l", bounds_mm=kw["bounds_mm"], reach=second)
+    _same_grid(got, built)
+    # the second program's lookups near its path read the whole band's numbers, which the first
+    # program's grid does not have there
+    whole = build_distance_grid(mesh, 0.5, name="part:l", bounds_mm=kw["bounds_mm"])
+    near_second = np.array([[2.0, 10.0, 0.0], [2.5, 9.0, 1.0], [1.5, 11.0, -1.0]])
+    assert np.array_equal(got.lower_bound_np(near_second), whole.lower_bound_np(near_second))
+    _no_build(monkeypatch, grid_module, "build_distance_grid")
+    again = cached_distance_grid(mesh, 0.5, reach=first, **kw)
+    assert not np.array_equal(again.lower_bound_np(near_second), whole.lower_bound_np(near_second))
+
+
 def test_a_hit_takes_the_name_it_is_asked_for(tmp_path):
     mesh = _l_shape()
     cached_distance_grid(mesh, 1.0, name="part:first.stl", cache_dir=tmp_path)
@@ -118,6 +140,9 @@ def test_every_input_of_a_grid_is_in_its_key(tmp_path, monkeypatch):
         dict(mesh=mesh, pitch_mm=1.0, closed=False),
         dict(mesh=mesh, pitch_mm=1.0, bounds_mm=np.array([[-5.0, -5.0, -9.0], [40.0, 40.0, 9.0]])),
         dict(mesh=mesh, pitch_mm=1.0, bounds_mm=np.array([[-5.0, -5.0, -9.0], [40.0, 40.0, 8.0]])),
+        dict(mesh=mesh, pitch_mm=1.0, reach=Reach.of_points(np.array([[0.0, 0.0, 6.0]]), 8.0)),
+        dict(mesh=mesh, pitch_mm=1.0, reach=Reach.of_points(np.array([[0.0, 0.0, 6.0]]), 8.5)),
+        dict(mesh=mesh, pitch_mm=1.0, reach=Reach.of_points(np.array([[0.0, 2.0, 6.0]]), 8.0)),
     ]
     for variant in variants:
         cached_distance_grid(cache_dir=tmp_path, **variant)

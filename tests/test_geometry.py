@@ -335,6 +335,21 @@ def test_compiled_surface_cells_mark_the_same_cells_as_the_numpy_passes(sample_h
         assert np.array_equal(surface_cells(*args), surface_cells(*args, compiled=False))
 
 
+@pytest.mark.parametrize("pitch", [0.5, 0.8])
+def test_the_compiled_voxelizer_fills_the_same_cells_as_the_numpy_passes(sample_head, sample_mold, pitch):
+    for mesh in (sample_head, sample_mold):
+        whole = voxelize(mesh.vertices, mesh.faces, pitch)
+        assert whole.occupancy.any()
+        assert np.array_equal(whole.occupancy, voxelize(mesh.vertices, mesh.faces, pitch, compiled=False).occupancy)
+        # a grid that cuts the mesh (crossings below and beside it), off the whole grid's lattice
+        origin = whole.origin_mm + 0.37 * pitch + np.array([5.0, -3.0, 4.0])
+        shape = tuple(int(n) for n in np.array(whole.shape) * 2 // 3)
+        cut = voxelize(mesh.vertices, mesh.faces, pitch, origin_mm=origin, shape=shape)
+        assert cut.occupancy.any()
+        assert np.array_equal(cut.occupancy, voxelize(mesh.vertices, mesh.faces, pitch, origin_mm=origin, shape=shape,
+                                                      compiled=False).occupancy)
+
+
 # ---- head model --------------------------------------------------------------------------
 
 

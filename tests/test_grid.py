@@ -10,7 +10,7 @@ import pytest
 import trimesh
 
 from ncfix.collision import grid as grid_module
-from ncfix.collision.grid import EXACT_BAND_MM, build_distance_grid
+from ncfix.collision.grid import EXACT_BAND_MM, Reach, build_distance_grid
 from ncfix.geometry.distance import point_mesh_distance
 from ncfix.geometry.mesh import load_mesh
 from ncfix.collision.near import surface_distances
@@ -112,3 +112,48 @@ def test_without_the_exact_band_the_bound_is_looser(mold, mold_grid, mold_points
     h = 0.5 * np.sqrt(3.0) * PITCH
     band = (true > 2 * h + 1e-3) & (true < EXACT_BAND_MM - 2 * h)
     assert (true[band] - loose[band]).max() > 2 * (0.5 * np.sqrt(3.0) * PITCH) + 0.1
+
+
+def _reach_case(mold):
+    """A short path beside the mold (two points 30 mm apart, 2 mm off its top) and a reach of 12 mm
+    about it: the exact band is made only near the path."""
+    lo, hi = mold.bounds
+    top = hi[2] + 2.0
+    a = np.array([lo[0] + 0.3 * (hi[0] - lo[0]), 0.5 * (lo[1] + hi[1]), top])
+    path = a + np.linspace(0.0, 1.0, 16)[:, None] * np.array([30.0, 0.0, 0.0])
+    return path, Reach.of_points(path, 12.0)
+
+
+def test_a_reach_mask_holds_every_cell_within_the_reach():
+    rng = np.random.default_rng(11)
+    points = rng.uniform(-20.0, 20.0, (40, 3))
+    reach = Reach.of_points(points, 7.3)
+    origin, shape, pitch, slack = np.array([-31.2, -29.9, -30.4]), (120, 115, 118), 0.5, 0.43
+    mask = reach.mask(origin, shape, pitch, slack)
+    centres = origin + np.argwhere(np.ones(shape, dtype=bool)) * pitch
+    nearest = np.full(len(centres), np.inf)
+    for p in points:
+        nearest = np.minimum(nearest, np.linalg.norm(centres - p, axis=1))
+    within = (nearest <= reach.radius_mm + slack).reshape(shape)
+    assert within.sum() > 10_000 and not (within & ~mask).any()
+    # a superset by at most the cubes' diagonal (and the EDT's rounding)
+    assert not (mask.ravel() & (nearest > reach.radius_mm + slack + 2 * np.sqrt(3.0) * reach.cell_mm + 2e-3)).any()
+
+
+def test_a_grid_made_for_a_reach_is_the_whole_grid_there_and_a_lower_bound_everywhere(mold, mold_grid):
+    path, reach = _reach_case(mold)
+    grid = build_distance_grid(mold, PITCH, reach=reach)
+    assert grid.shape == mold_grid.shape
+    # looser (the distance transform's bound) only outside the reach, where the band was not made
+    assert (grid.dist_mm <= mold_grid.dist_mm).all() and (grid.dist_mm < mold_grid.dist_mm).sum() > 10_000
+    # every lookup within the reach reads the whole grid's numbers: points about the path, out to
+    # the edge of the reach (on the sphere of its radius about a path point)
+    rng = np.random.default_rng(12)
+    direction = rng.normal(size=(6000, 3))
+    direction /= np.linalg.norm(direction, axis=1)[:, None]
+    radius = reach.radius_mm * np.concatenate([np.ones(3000), np.sqrt(rng.random(3000))])
+    points = path[rng.integers(0, len(path), 6000)] + direction * radius[:, None]
+    assert np.array_equal(grid.lower_bound_np(points), mold_grid.lower_bound_np(points))
+    # still a lower bound anywhere, near the body in and out of the reach
+    anywhere = np.concatenate([_near_surface_points(mold, 3000, 2.0, 13), points])
+    assert (grid.lower_bound_np(anywhere) <= _true_distance(mold, anywhere, True) + 1e-9).all()

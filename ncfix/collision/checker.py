@@ -25,7 +25,7 @@ from ncfix.collision.depth import DepthProbe
 from ncfix.collision.descent import HostTree
 from ncfix.collision.exact import ExactParts, cached_clip_head
 from ncfix.collision.exact_beads import BeadBuckets, candidates_free, first_bead_hits
-from ncfix.collision.grid import DistanceGrid, cached_distance_grid
+from ncfix.collision.grid import DistanceGrid, Reach, cached_distance_grid
 from ncfix.collision.head import HeadModel, SphereTree, cached_sphere_tree
 from ncfix.collision.near import cached_near_surface
 from ncfix.collision.nested import Nested, mesh_bodies
@@ -228,6 +228,8 @@ class Checker:
 
     head : closed mesh in the head frame (tip at the origin, axis +Z): a ``Mesh`` or a trimesh
     parts : (name, mesh, closed) in workpiece mm; names as the report shows them
+    part_bounds_mm, part_reach : the box the part grids are cropped to, and where the program
+        can look them up (their exact band is made there: ``grid.build_distance_grid``)
 
     The grids, sphere trees and the clipped head's NearSurface come from the on-disk cache
     (``ncfix.cache``) when they were built before.
@@ -236,7 +238,7 @@ class Checker:
     def __init__(self, head: Mesh | trimesh.Trimesh, model: HeadModel, parts: list[tuple[str, Mesh | trimesh.Trimesh, bool]], *,
                  pitch_mm: float, clearance_mm: float = 0.0, bead_radius_mm: float = 1.0,
                  tip_allowance_mm: float = 1.0, device: str = "cpu", part_bounds_mm: np.ndarray | None = None,
-                 bead_drop_mm: float = 0.0, bead_shape: BeadShape | None = None) -> None:
+                 part_reach: Reach | None = None, bead_drop_mm: float = 0.0, bead_shape: BeadShape | None = None) -> None:
         self.device = resolve_device(device)
         # The sphere-tree descent: compiled loops on the CPU (``descent``), torch batches elsewhere.
         self.compiled = self.device == "cpu"
@@ -256,7 +258,8 @@ class Checker:
         self.head = head
         self.rho_mm = float(np.linalg.norm(head.vertices, axis=1).max())
         self.tree = tree_tensors(cached_sphere_tree(model.centers_mm, model.radii_mm, LEAF_CELL_MM), self.device)
-        self.parts = [Part(name, cached_distance_grid(mesh, pitch_mm, closed=closed, name=name, bounds_mm=part_bounds_mm),
+        self.parts = [Part(name, cached_distance_grid(mesh, pitch_mm, closed=closed, name=name, bounds_mm=part_bounds_mm,
+                                                reach=part_reach),
                            mesh) for name, mesh, closed in parts]
         # A point where a part's grid bounds the distance above zero is outside it: the depth of a
         # colliding pose tests the others only.

@@ -37,6 +37,54 @@ JITTER_SAFE_MM = 1e-3
 # The code a grid comes from: editing any of these files makes every cached grid a miss.
 GRID_SOURCES = ("ncfix.collision.grid", "ncfix.collision.voxelize", "ncfix.collision.near", "ncfix.geometry.tolerances")
 _GRID_ARRAYS = ("dist_mm", "origin_mm", "pitch_mm", "body_bounds_mm")
+# The program's points are gathered in cubes of this edge (mm) for the exact band's region (``Reach``).
+REACH_CELL_MM = 2.0
+
+
+@dataclass(frozen=True)
+class Reach:
+    """Where a program can look a part grid up: within ``radius_mm`` of one of its points (its
+    programmed points, tips and points along its arcs), the points given by the cubes of edge
+    ``cell_mm`` they lie in (cube (i, j, k) spans [i, i + 1)·cell_mm on x, and so on).
+
+    cells : (k, 3) int64, sorted, unique
+    """
+
+    cells: np.ndarray
+    cell_mm: float
+    radius_mm: float
+
+    @classmethod
+    def of_points(cls, points: np.ndarray, radius_mm: float, cell_mm: float = REACH_CELL_MM) -> "Reach":
+        """The reach of points (n, 3) mm (non-finite rows left out)."""
+        return cls(cube_cells(points, cell_mm), float(cell_mm), float(radius_mm))
+
+    def mask(self, origin_mm: np.ndarray, shape: tuple[int, int, int], pitch_mm: float, slack_mm: float) -> np.ndarray:
+        """(shape) bool: True at least at every cell centre of the grid within ``radius_mm +
+        slack_mm`` of a point of the reach (a superset: a centre c in cube Q is within s·√3/2 of
+        Q's centre, and so is a point in cube q of q's, so |c - p| <= r gives |Q - q| <= r + s·√3
+        between cube centres, which an EDT over the cubes measures)."""
+        s = self.cell_mm
+        within = self.radius_mm + slack_mm + s * np.sqrt(3.0) + 1e-3  # 1e-3: the EDT's float32
+        axes = [np.floor((origin_mm[a] + np.arange(shape[a]) * pitch_mm) / s).astype(np.int64) for a in range(3)]
+        pad = int(np.ceil(within / s)) + 1
+        lo = np.array([axis[0] for axis in axes]) - pad
+        hi = np.array([axis[-1] for axis in axes]) + pad
+        cubes = np.asarray(self.cells, dtype=np.int64).reshape(-1, 3)
+        cubes = cubes[((cubes >= lo) & (cubes <= hi)).all(axis=1)]
+        if not len(cubes):
+            return np.zeros(shape, dtype=bool)
+        free = np.ones(tuple(hi - lo + 1), dtype=bool)
+        free[tuple((cubes - lo).T)] = False
+        near = distance_transform(free, s) <= within
+        return near[np.ix_(axes[0] - lo[0], axes[1] - lo[1], axes[2] - lo[2])]
+
+
+def cube_cells(points: np.ndarray, cell_mm: float) -> np.ndarray:
+    """The cubes of edge ``cell_mm`` holding points (n, 3) mm: (k, 3) int64, sorted, unique."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    return np.unique(np.floor(pts / cell_mm).astype(np.int64), axis=0).reshape(-1, 3)
 
 
 @dataclass
@@ -161,9 +209,11 @@ def marked_cells(mesh: trimesh.Trimesh, closed: bool, pitch_mm: float, origin_mm
 
 
 def tighten_near_body(dist: np.ndarray, inside: np.ndarray, mesh: trimesh.Trimesh, origin_mm: np.ndarray,
-                      pitch_mm: float) -> None:
+                      pitch_mm: float, region: np.ndarray | None = None) -> None:
     """Raises ``dist`` (the EDT, float32, in place) to ``d(c) + h`` at the cells within
-    ``EXACT_BAND_MM`` whose centre is known to lie outside the body.
+    ``EXACT_BAND_MM`` whose centre is known to lie outside the body (and, given ``region``, (nx,
+    ny, nz) bool, lies in it: the cells a program can look up; the others keep ``D``, a looser
+    bound that is just as valid).
 
     Near the body ``D(c)`` can be up to ``2h`` below the true distance ``d(c)`` (``D`` measures to
     marked centres, each up to ``h`` from the body). Storing ``max(D(c), d(c) + h)``, with ``d(c)``
@@ -174,7 +224,10 @@ def tighten_near_body(dist: np.ndarray, inside: np.ndarray, mesh: trimesh.Trimes
     the surface than the voxelizer's ray jitter (``JITTER_SAFE_MM``: the jittered ray saw the same
     side)."""
     h = 0.5 * np.sqrt(3.0) * pitch_mm
-    cells = np.flatnonzero((dist.ravel() <= EXACT_BAND_MM) & ~inside.ravel())
+    band = (dist.ravel() <= EXACT_BAND_MM) & ~inside.ravel()
+    if region is not None:
+        band &= region.ravel()
+    cells = np.flatnonzero(band)
     if not len(cells):
         return
     centres = np.asarray(origin_mm, dtype=np.float64) + np.stack(np.unravel_index(cells, dist.shape), axis=1) * pitch_mm
@@ -188,12 +241,15 @@ def tighten_near_body(dist: np.ndarray, inside: np.ndarray, mesh: trimesh.Trimes
 
 
 def build_distance_grid(mesh: trimesh.Trimesh, pitch_mm: float, *, closed: bool = True, name: str = "",
-                        bounds_mm: np.ndarray | None = None) -> DistanceGrid:
+                        bounds_mm: np.ndarray | None = None, reach: Reach | None = None) -> DistanceGrid:
     """Distance grid of a mesh at ``pitch_mm``.
 
     bounds_mm : (2, 3) region to cover (default: the mesh's bounds); it is intersected with the
         mesh's bounds (no body outside them) and padded by two cells. Lookups outside the grid
         stay valid lower bounds, only looser.
+    reach : where the program looks the grid up (default: anywhere); the exact band is computed
+        only for the cells a lookup there can read (its nearest cell centre, within half a cell
+        diagonal), the others keep the distance transform's bound.
     """
     bounds = np.asarray(mesh.bounds, dtype=np.float64)
     cropped = False
@@ -214,20 +270,23 @@ def build_distance_grid(mesh: trimesh.Trimesh, pitch_mm: float, *, closed: bool 
             marked[(slice(None),) * axis + (0,)] = True
             marked[(slice(None),) * axis + (-1,)] = True
     dist = distance_transform(~marked, pitch_mm)
-    tighten_near_body(dist, inside, mesh, origin, pitch_mm)
+    region = None if reach is None else reach.mask(origin, shape, pitch_mm, 0.5 * np.sqrt(3.0) * pitch_mm)
+    tighten_near_body(dist, inside, mesh, origin, pitch_mm, region)
     # The bounds copied: trimesh's are read-only, the cached ones writable (numba types them apart).
     return DistanceGrid(dist, origin, float(pitch_mm), name, np.array(mesh.bounds, dtype=np.float64))
 
 
 def cached_distance_grid(mesh: trimesh.Trimesh, pitch_mm: float, *, closed: bool = True, name: str = "",
-                         bounds_mm: np.ndarray | None = None,
+                         bounds_mm: np.ndarray | None = None, reach: Reach | None = None,
                          cache_dir: str | None = None) -> DistanceGrid:
     """``build_distance_grid``'s grid, read from the on-disk cache (``ncfix.cache``) when the same
-    mesh was gridded before with the same pitch, closedness, crop, code and libraries."""
+    mesh was gridded before with the same pitch, closedness, crop, reach, code and libraries."""
     key = cache.make_key(
         "grid",
         np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64),
         float(pitch_mm), bool(closed), None if bounds_mm is None else np.asarray(bounds_mm, dtype=np.float64),
+        None if reach is None else np.asarray(reach.cells, dtype=np.int64),
+        None if reach is None else [float(reach.cell_mm), float(reach.radius_mm)],
         cache.fingerprint(*GRID_SOURCES),
         {package: cache.version(package) for package in ("numpy", "edt", "scipy")},
     )
@@ -244,9 +303,10 @@ def cached_distance_grid(mesh: trimesh.Trimesh, pitch_mm: float, *, closed: bool
 
     body = "the head" if name == "head" else name.split(":", 1)[-1] or "a mesh"
     what = (f"the distance grid of {body} (first run for this mesh"
-            + (" and this program's reach)" if bounds_mm is not None else ")"))
+            + (" and this program's reach)" if bounds_mm is not None or reach is not None else ")"))
     grid, _ = cache.cached("grid", key, _GRID_ARRAYS,
-                           lambda: build_distance_grid(mesh, pitch_mm, closed=closed, name=name, bounds_mm=bounds_mm),
+                           lambda: build_distance_grid(mesh, pitch_mm, closed=closed, name=name, bounds_mm=bounds_mm,
+                                                       reach=reach),
                            to_arrays, from_arrays, cache_dir, what=what)
     grid.cache_key, grid.cache_dir = key, cache_dir
     return grid
