@@ -1,14 +1,13 @@
-"""The exact deposit test's bucket grid (``exact_beads.BeadBuckets``)."""
+"""The exact deposit test's bucket grid of bead chunks (``exact_beads.BeadBuckets``)."""
 
 import numpy as np
 import pytest
 
-from ncfix.collision.exact_beads import CELL_MM, MAX_CELLS, BeadBuckets
+from ncfix.collision.exact_beads import CELL_MM, CHUNK_BEADS, CHUNK_DEV_MM, CHUNK_MM, MAX_CELLS, BeadBuckets
 
 
-def _numpy_buckets(beads, seq, lo, hi):
-    """The bucket grid as numpy states it (the formulation the compiled counting sort replaced):
-    (index, beads, seq, lo, cell, dims, cell_beads, cell_start)."""
+def _numpy_region(beads, seq, lo, hi):
+    """The bucketed region as numpy states it: (index, beads, seq, lo, cell, dims)."""
     lo = np.maximum(np.asarray(lo, dtype=np.float64), beads.min(axis=0) if len(beads) else lo)
     hi = np.minimum(np.asarray(hi, dtype=np.float64), beads.max(axis=0) if len(beads) else hi)
     inside = np.nonzero((beads >= lo).all(axis=1) & (beads <= hi).all(axis=1))[0] if len(beads) else \
@@ -18,23 +17,20 @@ def _numpy_buckets(beads, seq, lo, hi):
     while np.prod(np.floor(extent / cell) + 1) > MAX_CELLS:
         cell *= 2.0
     dims = (np.floor(extent / cell) + 1).astype(np.int64)
-    kept = beads[inside]
-    if len(inside):
-        ijk = np.minimum(np.floor((kept - lo) / cell).astype(np.int64), dims - 1)
-        flat = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-    else:
-        flat = np.zeros(0, dtype=np.int64)
-    counts = np.bincount(flat, minlength=int(np.prod(dims)))
-    return (inside, kept, np.asarray(seq, dtype=np.int64)[inside], lo, cell, dims,
-            np.argsort(flat, kind="stable"), np.concatenate([[0], np.cumsum(counts)]))
+    return inside, beads[inside], np.asarray(seq, dtype=np.int64)[inside], lo, cell, dims
 
 
 def _cases():
     rng = np.random.default_rng(7)
     for k in range(40):
         n = int(rng.integers(0, 2500))
-        beads = rng.uniform(-50.0, 50.0, (n, 3))
-        beads[: n // 3] = np.round(beads[: n // 3] / CELL_MM) * CELL_MM  # on cell faces and box faces
+        if k % 2:  # scattered beads: chunks of one or two
+            beads = rng.uniform(-50.0, 50.0, (n, 3))
+            beads[: n // 3] = np.round(beads[: n // 3] / CELL_MM) * CELL_MM  # on cell faces and box faces
+        else:  # a printed path: straight runs, turns, jumps, a wobble
+            step = rng.normal(0.0, 1.0, (n, 3))
+            step[rng.random(n) < 0.9] = [0.25, 0.0, 0.0]
+            beads = np.cumsum(step, axis=0) + rng.normal(0.0, 0.02, (n, 3)) * (rng.random((n, 1)) < 0.3)
         seq = rng.integers(-1, 100, n)
         lo = rng.uniform(-60.0, 10.0, 3)
         hi = lo + rng.uniform(-5.0, 90.0, 3)  # sometimes empty on an axis
@@ -46,32 +42,60 @@ def _cases():
 
 
 @pytest.mark.parametrize("case", list(_cases()), ids=lambda c: f"{len(c[0])}")
-def test_buckets_are_the_numpy_formulation(case):
-    """The compiled filter and counting sort give exactly the arrays of the numpy formulation
-    (the order inside a cell is the beads' order, which the exact test's tie-breaks follow)."""
+def test_buckets_hold_each_bead_once_in_a_chunk_that_bounds_it(case):
+    """The compiled filter keeps exactly the beads of the numpy formulation; every kept bead is in
+    exactly one chunk, with its sequence number and radius; a chunk is a run of consecutive beads
+    in laying order, at most CHUNK_BEADS long with ends at most CHUNK_MM apart, each bead within
+    the chunk's dev of its segment; the chunk's sequence number is its beads' smallest; chunks are
+    listed under the cell of their segment's middle and within chunk_reach of it."""
     beads, seq, lo, hi = case
-    got = BeadBuckets(beads, seq, lo, hi)
-    want = _numpy_buckets(beads, seq, lo, hi)
-    names = ("index", "beads", "seq", "lo", "cell", "dims", "cell_beads", "cell_start")
-    for name, value in zip(names, want):
+    radii = np.linspace(0.2, 0.5, len(beads))
+    got = BeadBuckets(beads, seq, lo, hi, radii)
+    want = _numpy_region(beads, seq, lo, hi)
+    for name, value in zip(("index", "beads", "seq", "lo", "cell", "dims"), want):
         mine = np.asarray(getattr(got, name))
         assert mine.dtype == np.asarray(value).dtype, name
         assert np.array_equal(mine, value), name
+    index = want[0]
+    first, seg = got.chunk_first, got.chunk_seg
+    assert first[0] == 0 and first[-1] == len(index) and (np.diff(first) >= 1).all()
+    assert (np.diff(first) <= CHUNK_BEADS).all()
+    # Which kept bead each chunk position holds: chunks are runs of consecutive kept beads.
+    where = {tuple(b): i for i, b in enumerate(got.beads)} if len(got.beads) == len(np.unique(got.beads, axis=0)) \
+        else None
+    taken = []
+    d0, d1, d2 = (int(v) for v in got.dims)
+    for c in range(len(seg)):
+        members = got.chunk_beads[first[c]:first[c + 1]]
+        a, b, dev = seg[c, :3], seg[c, 3:6], seg[c, 6]
+        assert np.array_equal(members[0], a) and np.array_equal(members[-1], b)
+        assert np.linalg.norm(b - a) <= CHUNK_MM
+        u = b - a
+        t = np.clip(((members - a) @ u) / max(u @ u, 1e-300), 0.0, 1.0) if u @ u > 0 else np.zeros(len(members))
+        assert (np.linalg.norm(members - (a + t[:, None] * u), axis=1) <= dev).all() and dev <= CHUNK_DEV_MM + 1e-5
+        assert got.chunk_seq[c] == got.chunk_bseq[first[c]:first[c + 1]].min()
+        mid = 0.5 * (a + b)
+        assert (np.linalg.norm(members - mid, axis=1) <= got.chunk_reach).all()
+        cells = np.searchsorted(got.chunk_start, c, side="right") - 1
+        ijk = np.minimum(np.floor((mid - got.lo) / got.cell).astype(np.int64), got.dims - 1)
+        assert cells == (ijk[0] * d1 + ijk[1]) * d2 + ijk[2]
+        if where is not None:
+            order = [where[tuple(m)] for m in members]
+            assert order == list(range(order[0], order[0] + len(order)))
+            taken += order
+    if where is not None:
+        assert sorted(taken) == list(range(len(index)))
+        pos = np.array([where[tuple(m)] for m in got.chunk_beads], dtype=np.int64)
+        assert np.array_equal(got.chunk_bseq, got.seq[pos]) and np.array_equal(got.chunk_radii, radii[index][pos])
+    assert len(got.chunk_start) == d0 * d1 * d2 + 1 and got.chunk_start[-1] == len(seg)
 
 
-def test_every_bead_inside_is_in_its_cell():
-    """Each kept bead lies in the box of the cell it is listed under."""
-    beads, seq, lo, hi = next(c for c in _cases() if len(c[0]) > 500)
-    got = BeadBuckets(beads, seq, lo - 1e3, hi + 1e3)
-    assert len(got.beads) == len(beads)
-    d0, d1, d2 = got.dims
-    for c in range(int(d0 * d1 * d2)):
-        members = got.beads[got.cell_beads[got.cell_start[c]:got.cell_start[c + 1]]]
-        ijk = np.array([c // (d1 * d2), (c // d2) % d1, c % d2])
-        low = got.lo + ijk * got.cell
-        assert (members >= low - 1e-9).all()
-        top = ijk < got.dims - 1  # the last cell of an axis takes what lies beyond it
-        assert (members[:, top] < (low + got.cell)[top] + 1e-9).all()
+def test_a_straight_path_makes_full_chunks():
+    """A straight run of beads 0.25 mm apart is cut into chunks of CHUNK_BEADS beads, dev ~ 0."""
+    beads = np.column_stack([np.arange(400) * 0.25, np.zeros(400), np.zeros(400)])
+    got = BeadBuckets(beads, np.zeros(400, np.int64), beads.min(axis=0), beads.max(axis=0))
+    assert len(got.chunk_seg) == 400 // CHUNK_BEADS
+    assert (got.chunk_seg[:, 6] < 1e-5).all()
 
 
 def test_bead_cells_find_every_bead_within_the_ball():

@@ -49,8 +49,9 @@ MAX_PAIRS_PER_POSE = 32
 GROUP_MAX_PAIRS = 8
 # Poses per torch batch.
 POSE_BATCH = 8192
-# Poses per exact deposit batch (bounds the candidate (pose, bead) pairs held at once).
-EXACT_POSE_BATCH = 256
+# Poses per call of the exact bead test (progress is reported between calls; each call sets up
+# work arrays as long as the bucketed beads).
+EXACT_POSE_BATCH = 2048
 # Sample groups (mm of travel, |ΔC| + ρ·θ summed) certified together, longest first.
 GROUP_LEVELS_MM = (24.0, 6.0, 1.5)
 # A group level that clears under 5% of its groups is skipped for this many calls.
@@ -720,20 +721,18 @@ class Checker:
             self.stats.retired_bead_hits += int(hit.sum())
             clearance[hit] = 0.0
         rest = np.nonzero(~hit)[0]
-        # In batches: a nozzle running among its beads can have thousands of candidate beads a pose.
-        for a in range(0, len(rest), EXACT_POSE_BATCH):
-            sel = rest[a:a + EXACT_POSE_BATCH]
-            hit[sel], clearance[sel] = self._exact_kept(C[sel], R[sel], lin[sel], ang[sel], seq[sel], store,
-                                                        pending, pending_seq, bead_field, clearances, pending_r)
-            if progress is not None:
-                progress(min(a + EXACT_POSE_BATCH, len(rest)) / len(rest))
+        if len(rest):
+            hit[rest], clearance[rest] = self._exact_kept(C[rest], R[rest], lin[rest], ang[rest], seq[rest], store,
+                                                          pending, pending_seq, bead_field, clearances, pending_r,
+                                                          progress)
         return hit, clearance
 
     def _exact_kept(self, C, R, lin, ang, seq, store: BeadStore, pending, pending_seq, bead_field: BeadField,
-                    clearances: bool = True, pending_r=None):
+                    clearances: bool = True, pending_r=None, progress=None):
         """The exact test against the kept beads (``exact_beads``): candidate beads near the failing
         nodes (``CANDIDATE_LEVEL``), the sequence filter, the allowance plane, the head grid, then the exact test;
-        the clearance of each hit pose is that of its deepest bead (unless not ``clearances``)."""
+        the clearance of each hit pose is that of its deepest bead (unless not ``clearances``).
+        The beads are bucketed once for all the poses, which are tested in batches."""
         n = len(C)
         hit = np.zeros(n, dtype=bool)
         clearance = np.full(n, np.inf)
@@ -763,13 +762,19 @@ class Checker:
         # Only the beads in the region the failing nodes' query balls cover are bucketed (with a
         # slack: the bead kernel places the balls in arithmetic of its own).
         buckets = BeadBuckets(beads, bseq, box[0] - BOX_SLACK_MM, box[1] + BOX_SLACK_MM, brad)
-        hit, depth, candidates, tested = first_bead_hits(
-            C, R, lin, ang, seq, pose, node_c, radii, reach, buckets, self.head_grid, self.near_head,
-            bead_r=self.bead_radius_mm, clearance=self.clearance_mm, allowance=self.tip_allowance_mm,
-            rho=self.rho_mm, deepest=clearances)
-        self.stats.exact_bead_poses += int((candidates > 0).sum())
-        self.stats.exact_bead_tests += tested
-        clearance[hit] = depth[hit] if clearances else -np.inf
+        bounds = np.searchsorted(pose, np.arange(0, n + EXACT_POSE_BATCH, EXACT_POSE_BATCH).clip(max=n))
+        for a, (first, end) in zip(range(0, n, EXACT_POSE_BATCH), zip(bounds[:-1], bounds[1:])):
+            b = min(n, a + EXACT_POSE_BATCH)
+            h, depth, candidates, tested = first_bead_hits(
+                C[a:b], R[a:b], lin[a:b], ang[a:b], seq[a:b], pose[first:end] - a, node_c[first:end], radii[first:end],
+                reach[first:end], buckets, self.head_grid, self.near_head, bead_r=self.bead_radius_mm,
+                clearance=self.clearance_mm, allowance=self.tip_allowance_mm, rho=self.rho_mm, deepest=clearances)
+            hit[a:b] = h
+            clearance[a:b][h] = depth[h] if clearances else -np.inf
+            self.stats.exact_bead_poses += int((candidates > 0).sum())
+            self.stats.exact_bead_tests += tested
+            if progress is not None:
+                progress(b / n)
         return hit, clearance
 
     def _bead_arrays(self, store: BeadStore, pending: np.ndarray, pending_seq: np.ndarray,

@@ -124,36 +124,40 @@ def _node_fails(C, R, p, nd, lin, ang, extra, center, radius, reach, mode, g, f,
     return _lb(x, y, z, mode, g, f, b) <= need
 
 
-def _undecided_kernel(C, R, lin, ang, extra, center, radius, reach, children, first, last, cap, mode, g, f, b, out):
+def _undecided_kernel(C, R, lin, ang, extra, center, radius, reach, children, first, last, cap, levels, mode, g, f,
+                      b, out):
+    """Depth first, stopping at the first failing leaf: a pose is undecided when a failing node
+    whose ancestors (from the entry level) all fail is a leaf, or is one more than ``cap`` on its
+    level. Which nodes fail does not depend on the order they are visited in, so this is the
+    decision of a level-by-level descent, reached after fewer nodes when a leaf fails."""
     n = C.shape[0]
     width = children.shape[1]
-    size = max(last - first, (cap + 1) * width)
-    front = np.empty(size, dtype=np.int64)
-    fails = np.empty(size, dtype=np.int64)
+    stack = np.empty(last - first + levels * (cap + 1) * width, dtype=np.int64)
+    depth = np.empty(stack.shape[0], dtype=np.int64)
+    count = np.zeros(levels + 1, dtype=np.int64)
     for p in range(n):
-        m = last - first
-        for q in range(m):
-            front[q] = first + q
+        m = 0
+        for q in range(last - 1, first - 1, -1):
+            stack[m] = q
+            depth[m] = 0
+            m += 1
+        count[:] = 0
         undecided = False
         while m > 0:
-            nf = 0
-            for q in range(m):
-                nd = front[q]
-                if _node_fails(C, R, p, nd, lin, ang, extra, center, radius, reach, mode, g, f, b):
-                    if children[nd, 0] < 0 or nf == cap:  # a failing ball, or too many failing nodes
-                        undecided = True
-                        break
-                    fails[nf] = nd
-                    nf += 1
-            if undecided:
+            m -= 1
+            nd, lev = stack[m], depth[m]
+            if not _node_fails(C, R, p, nd, lin, ang, extra, center, radius, reach, mode, g, f, b):
+                continue
+            if children[nd, 0] < 0 or count[lev] == cap:  # a failing ball, or too many failing nodes
+                undecided = True
                 break
-            m = 0
-            for q in range(nf):
-                for s in range(width):
-                    ch = children[fails[q], s]
-                    if ch >= 0:
-                        front[m] = ch
-                        m += 1
+            count[lev] += 1
+            for s in range(width - 1, -1, -1):
+                ch = children[nd, s]
+                if ch >= 0:
+                    stack[m] = ch
+                    depth[m] = lev + 1
+                    m += 1
         out[p] = undecided
 
 
@@ -247,7 +251,8 @@ def undecided(tree: HostTree, lower_bound, C, R, lin, ang, extra: float, entry: 
 
     def run(lo, hi):
         _undecided_kernel(C[lo:hi], R[lo:hi], lin[lo:hi], ang[lo:hi], float(extra), tree.center, tree.radius,
-                          tree.reach, tree.children, first, last, int(cap), mode, g, f, b, out[lo:hi])
+                          tree.reach, tree.children, first, last, int(cap), len(tree.level_start) - 1 - entry, mode,
+                          g, f, b, out[lo:hi])
 
     map_runs(run, n)
     return out

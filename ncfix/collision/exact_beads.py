@@ -1,7 +1,9 @@
 """The exact deposit test of undecided poses, as one compiled loop (``Checker._exact_kept``).
 
 Per pose, the candidate beads near the sphere tree's failing nodes are gathered from a bucket grid
-and tested exactly (point-triangle distances to the clipped head, ``near``), most suspect first,
+of chunks (runs of consecutive beads held as a segment widened by their distance from it, so that
+the many beads below the tip allowance on a dense print are dropped a chunk at a time) and tested
+exactly (point-triangle distances to the clipped head, ``near``), most suspect first,
 stopping at the first touching bead. It makes the same decisions as a numpy formulation (k-d tree
 pairs, a coal call per bead) without holding the ~10⁸ candidate pairs of a nozzle running among its
 own beads. The loop's filters: ``first_bead_hits``; design: docs/deposit.md#the-exact-bead-test.
@@ -21,6 +23,15 @@ MAX_CELLS = 1 << 22
 # A bead binned into a cell lies within this (mm) of the cell's box (floor((b - lo) / cell) is
 # computed in floating point): the kernel's cell tests widen each box by it.
 CELL_SLACK_MM = 1e-6
+# Chunks: runs of at most CHUNK_BEADS consecutive beads (in laying order) whose ends are at most
+# CHUNK_MM apart and whose beads lie within CHUNK_DEV_MM of the segment between the ends (a
+# straight move's beads: on it). The kernel tests a chunk as that segment widened by its beads'
+# largest distance from it (plus CHUNK_SLACK_MM, more than the rounding of any test on it), so a
+# run of beads wholly below the allowance plane or far from a node is dropped at once.
+CHUNK_BEADS = 8
+CHUNK_MM = 2.0
+CHUNK_DEV_MM = 0.05
+CHUNK_SLACK_MM = 1e-6
 
 
 def _head_lb(x, y, z, dist, origin, pitch, box, margin):  # pragma: no cover - compiled
@@ -39,7 +50,7 @@ def _head_lb(x, y, z, dist, origin, pitch, box, margin):  # pragma: no cover - c
 
 
 def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
-            beads, bseq, brad, cell_start, cell_beads, glo, gcell, gdims,
+            beads, bseq, brad, chunk_seg, chunk_first, chunk_seq, chunk_start, creach, glo, gcell, gdims,
             hdist, horigin, hpitch, hbox, hmargin,
             tris, nlo, ncell, ndims, ncap, nstart, nlisted, slo, spitch, inside, sdepth,
             bead_r, clearance, allowance, rho, deepest):  # pragma: no cover - compiled
@@ -48,32 +59,44 @@ def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
     hit = np.zeros(n, np.bool_)
     candidates = np.zeros(n, np.int64)
     tested = 0
-    mark = np.full(beads.shape[0], -1, np.int64)
+    cmark = np.full(chunk_first.shape[0], -1, np.int64)
+    most = 1
+    for p in range(n):
+        most = max(most, node_start[p + 1] - node_start[p])
+    wc = np.empty((most, 3))
+    wq = np.empty(most)
     buf = np.empty((beads.shape[0], 3))
     buf_need = np.empty(beads.shape[0])
     buf_r = np.empty(beads.shape[0])
     buf_lb = np.empty(beads.shape[0])
     buf_sd = np.empty(beads.shape[0])
-    half = 0.5 * gcell + CELL_SLACK_MM  # a cell's half edge, with the slack of its beads' binning
+    half = 0.5 * gcell + CELL_SLACK_MM  # a cell's half edge, with the slack of its chunks' binning
     for p in range(n):
         k = 0
         c0, c1, c2 = C[p, 0], C[p, 1], C[p, 2]
-        # A cell whose every point lies below the allowance plane by the most any of its beads
-        # needs (the largest sweep margin) holds no bead the plane test would keep.
         ax, ay, az = R[p, 0, 2], R[p, 1, 2], R[p, 2, 2]  # the head's axis
-        below = allowance - (bead_r + clearance + lin[p] + ang[p] * rho) - half * (abs(ax) + abs(ay) + abs(az))
-        for j in range(node_start[p], node_start[p + 1]):
-            wx = c0 + R[p, 0, 0] * node_c[j, 0] + R[p, 0, 1] * node_c[j, 1] + R[p, 0, 2] * node_c[j, 2]
-            wy = c1 + R[p, 1, 0] * node_c[j, 0] + R[p, 1, 1] * node_c[j, 1] + R[p, 1, 2] * node_c[j, 2]
-            wz = c2 + R[p, 2, 0] * node_c[j, 0] + R[p, 2, 1] * node_c[j, 1] + R[p, 2, 2] * node_c[j, 2]
-            q = node_r[j] + lin[p] + ang[p] * node_reach[j] + bead_r + clearance
-            q2 = q * q
-            x0 = max(int(np.floor((wx - q - glo[0]) / gcell)), 0)
-            x1 = min(int(np.floor((wx + q - glo[0]) / gcell)), gdims[0] - 1)
-            y0 = max(int(np.floor((wy - q - glo[1]) / gcell)), 0)
-            y1 = min(int(np.floor((wy + q - glo[1]) / gcell)), gdims[1] - 1)
-            z0 = max(int(np.floor((wz - q - glo[2]) / gcell)), 0)
-            z1 = min(int(np.floor((wz + q - glo[2]) / gcell)), gdims[2] - 1)
+        # The most any bead of the pose can need above the allowance plane (its radius, the
+        # clearance and the largest sweep margin): a chunk wholly below the plane by it holds no
+        # bead the plane test below would keep; a cell, by that and its chunks' reach.
+        top = bead_r + clearance + lin[p] + ang[p] * rho
+        below = allowance - top - half * (abs(ax) + abs(ay) + abs(az)) - creach
+        nodes = node_start[p + 1] - node_start[p]
+        for i in range(nodes):
+            j = node_start[p] + i
+            wc[i, 0] = c0 + R[p, 0, 0] * node_c[j, 0] + R[p, 0, 1] * node_c[j, 1] + R[p, 0, 2] * node_c[j, 2]
+            wc[i, 1] = c1 + R[p, 1, 0] * node_c[j, 0] + R[p, 1, 1] * node_c[j, 1] + R[p, 1, 2] * node_c[j, 2]
+            wc[i, 2] = c2 + R[p, 2, 0] * node_c[j, 0] + R[p, 2, 1] * node_c[j, 1] + R[p, 2, 2] * node_c[j, 2]
+            wq[i] = node_r[j] + lin[p] + ang[p] * node_reach[j] + bead_r + clearance
+        for i in range(nodes):
+            wx, wy, wz, q = wc[i, 0], wc[i, 1], wc[i, 2], wq[i]
+            qc = q + creach  # a chunk's beads lie within creach of its cell's box
+            qc2 = qc * qc
+            x0 = max(int(np.floor((wx - qc - glo[0]) / gcell)), 0)
+            x1 = min(int(np.floor((wx + qc - glo[0]) / gcell)), gdims[0] - 1)
+            y0 = max(int(np.floor((wy - qc - glo[1]) / gcell)), 0)
+            y1 = min(int(np.floor((wy + qc - glo[1]) / gcell)), gdims[1] - 1)
+            z0 = max(int(np.floor((wz - qc - glo[2]) / gcell)), 0)
+            z1 = min(int(np.floor((wz + qc - glo[2]) / gcell)), gdims[2] - 1)
             for x in range(x0, x1 + 1):
                 mx = glo[0] + (x + 0.5) * gcell  # the cell's centre
                 gx = max(abs(wx - mx) - half, 0.0)  # the ball's centre to the cell's box
@@ -82,45 +105,71 @@ def _kernel(C, R, lin, ang, seq, node_start, node_c, node_r, node_reach,
                     gy = max(abs(wy - my) - half, 0.0)
                     for z in range(z0, z1 + 1):
                         cidx = (x * gdims[1] + y) * gdims[2] + z
-                        first, end = cell_start[cidx], cell_start[cidx + 1]
+                        first, end = chunk_start[cidx], chunk_start[cidx + 1]
                         if first == end:
                             continue
                         mz = glo[2] + (z + 0.5) * gcell
                         gz = max(abs(wz - mz) - half, 0.0)
-                        if gx * gx + gy * gy + gz * gz > q2:
-                            continue  # the cell lies wholly outside the ball
+                        if gx * gx + gy * gy + gz * gz > qc2:
+                            continue  # the cell's chunks lie wholly outside the ball
                         if ax * (mx - c0) + ay * (my - c1) + az * (mz - c2) <= below:
                             continue  # wholly below the allowance plane
-                        for m in range(first, end):
-                            b = cell_beads[m]
-                            if mark[b] == p or bseq[b] > seq[p]:
+                        for h in range(first, end):
+                            if cmark[h] == p:
+                                continue  # done for this pose: rejected, or its beads gathered
+                            if chunk_seq[h] > seq[p]:
+                                cmark[h] = p  # every bead laid after the pose
                                 continue
-                            dx, dy, dz = beads[b, 0] - wx, beads[b, 1] - wy, beads[b, 2] - wz
-                            if dx * dx + dy * dy + dz * dz > q2:
+                            sx, sy, sz = chunk_seg[h, 0], chunk_seg[h, 1], chunk_seg[h, 2]
+                            ux, uy, uz = chunk_seg[h, 3] - sx, chunk_seg[h, 4] - sy, chunk_seg[h, 5] - sz
+                            dev = chunk_seg[h, 6]
+                            # Its beads lie within dev of the segment: the axis height of a segment
+                            # is largest at an end.
+                            za = ax * (sx - c0) + ay * (sy - c1) + az * (sz - c2)
+                            zb = za + ax * ux + ay * uy + az * uz
+                            if max(za, zb) + dev + top <= allowance:
+                                cmark[h] = p
                                 continue
-                            mark[b] = p
-                            # R^T (b - C): the head frame
-                            ex, ey, ez = beads[b, 0] - c0, beads[b, 1] - c1, beads[b, 2] - c2
-                            lx = R[p, 0, 0] * ex + R[p, 1, 0] * ey + R[p, 2, 0] * ez
-                            ly = R[p, 0, 1] * ex + R[p, 1, 1] * ey + R[p, 2, 1] * ez
-                            lz = R[p, 0, 2] * ex + R[p, 1, 2] * ey + R[p, 2, 2] * ez
-                            # A head point at distance d from the tip moves at most lin + ang·d
-                            # between samples; a bead laid at this very sample gets no margin.
-                            need = brad[b] + clearance  # its own radius (at most bead_r)
-                            if bseq[b] != seq[p]:
-                                swept = lin[p] + ang[p] * rho
-                                near = lin[p] + ang[p] * (np.sqrt(lx * lx + ly * ly + lz * lz) + need + swept)
-                                need += min(swept, near)
-                            if lz + need <= allowance:
-                                continue  # wholly below the allowance plane
-                            lb = _head_lb(lx, ly, lz, hdist, horigin, hpitch, hbox, hmargin)
-                            if lb > need:
-                                continue
-                            buf[k, 0], buf[k, 1], buf[k, 2] = lx, ly, lz
-                            buf_need[k] = need
-                            buf_r[k] = brad[b]
-                            buf_lb[k] = lb
-                            k += 1
+                            vx, vy, vz = wx - sx, wy - sy, wz - sz
+                            uu = ux * ux + uy * uy + uz * uz
+                            t = 0.0 if uu <= 0.0 else min(max((vx * ux + vy * uy + vz * uz) / uu, 0.0), 1.0)
+                            vx, vy, vz = vx - t * ux, vy - t * uy, vz - t * uz
+                            if vx * vx + vy * vy + vz * vz > (q + dev) * (q + dev):
+                                continue  # not near this node (another may reach it)
+                            cmark[h] = p  # its beads are gathered now, against every node of the pose
+                            for b in range(chunk_first[h], chunk_first[h + 1]):
+                                if bseq[b] > seq[p]:
+                                    continue
+                                near_node = False
+                                for u in range(nodes):
+                                    dx, dy, dz = beads[b, 0] - wc[u, 0], beads[b, 1] - wc[u, 1], beads[b, 2] - wc[u, 2]
+                                    if dx * dx + dy * dy + dz * dz <= wq[u] * wq[u]:
+                                        near_node = True
+                                        break
+                                if not near_node:
+                                    continue
+                                # R^T (b - C): the head frame
+                                ex, ey, ez = beads[b, 0] - c0, beads[b, 1] - c1, beads[b, 2] - c2
+                                lx = R[p, 0, 0] * ex + R[p, 1, 0] * ey + R[p, 2, 0] * ez
+                                ly = R[p, 0, 1] * ex + R[p, 1, 1] * ey + R[p, 2, 1] * ez
+                                lz = R[p, 0, 2] * ex + R[p, 1, 2] * ey + R[p, 2, 2] * ez
+                                # A head point at distance d from the tip moves at most lin + ang·d
+                                # between samples; a bead laid at this very sample gets no margin.
+                                need = brad[b] + clearance  # its own radius (at most bead_r)
+                                if bseq[b] != seq[p]:
+                                    swept = lin[p] + ang[p] * rho
+                                    near = lin[p] + ang[p] * (np.sqrt(lx * lx + ly * ly + lz * lz) + need + swept)
+                                    need += min(swept, near)
+                                if lz + need <= allowance:
+                                    continue  # wholly below the allowance plane
+                                lb = _head_lb(lx, ly, lz, hdist, horigin, hpitch, hbox, hmargin)
+                                if lb > need:
+                                    continue
+                                buf[k, 0], buf[k, 1], buf[k, 2] = lx, ly, lz
+                                buf_need[k] = need
+                                buf_r[k] = brad[b]
+                                buf_lb[k] = lb
+                                k += 1
         candidates[p] = k
         if k == 0:
             continue
@@ -248,8 +297,9 @@ def _candidates_kernel(C, R, cc, cr, counts, starts, members, beads, own, need, 
 
 class BeadBuckets:
     """Beads (the store's exact ones and the window's pending ones, with the sequence number from
-    which each is seen: -1 = always, and the radius of the sphere each is held as) in a bucket
-    grid over the region a batch of queries covers."""
+    which each is seen: -1 = always, and the radius of the sphere each is held as) in chunks of
+    consecutive beads (``_chunks``), the chunks in a bucket grid over the region a batch of
+    queries covers."""
 
     def __init__(self, beads: np.ndarray, seq: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                  radii: np.ndarray | float = 0.0):
@@ -271,8 +321,21 @@ class BeadBuckets:
         radii = np.asarray(radii, dtype=np.float64)
         self.radii = np.ascontiguousarray(np.broadcast_to(radii, (len(beads),))[self.index] if radii.ndim else
                                           np.full(len(self.index), float(radii)))
-        # A compiled counting sort: what np.argsort(flat, kind="stable") and np.bincount gave.
-        self.cell_beads, self.cell_start = _sort_by_cell(self.beads, lo, float(cell), self.dims)
+        # The chunks, each listed under the cell of its segment's middle (a compiled counting sort:
+        # np.argsort(flat, kind="stable") and np.bincount), and the beads in chunk order, with
+        # their sequence numbers and radii.
+        ends, seg, low_seq = _chunks(self.beads, self.seq)
+        order, self.chunk_start = _sort_by_cell(0.5 * (seg[:, :3] + seg[:, 3:6]), lo, float(cell), self.dims)
+        self.chunk_seg, self.chunk_seq = np.ascontiguousarray(seg[order]), np.ascontiguousarray(low_seq[order])
+        counts = (ends[1:] - ends[:-1])[order]
+        self.chunk_first = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        members = np.arange(len(self.beads)) + np.repeat(ends[order] - self.chunk_first[:-1], counts)
+        self.chunk_beads = np.ascontiguousarray(self.beads[members])
+        self.chunk_bseq = np.ascontiguousarray(self.seq[members])
+        self.chunk_radii = np.ascontiguousarray(self.radii[members])
+        # How far a chunk's beads lie from the middle of its segment, at most.
+        self.chunk_reach = float((0.5 * np.linalg.norm(seg[:, 3:6] - seg[:, :3], axis=1) + seg[:, 6]).max()) \
+            if len(seg) else 0.0
 
 
 def _inside(beads, lo, hi):  # pragma: no cover - compiled
@@ -292,8 +355,51 @@ def _inside(beads, lo, hi):  # pragma: no cover - compiled
     return out[:m].copy(), low, high
 
 
+def _chunks(beads, seq):  # pragma: no cover - compiled
+    """Runs of consecutive beads (m, 3), greedily (``CHUNK_BEADS``, ``CHUNK_MM``, ``CHUNK_DEV_MM``):
+    (each run's first bead and the end (runs + 1,); per run, its segment's ends and the largest
+    distance of its beads from the segment plus ``CHUNK_SLACK_MM`` (runs, 7); the smallest
+    sequence number of its beads (runs,))."""
+    m = beads.shape[0]
+    ends = np.empty(m + 1, np.int64)
+    seg = np.empty((m, 7))
+    low = np.empty(m, np.int64)
+    c = 0
+    i = 0
+    while i < m:
+        j = i  # the run's last bead so far
+        dev = 0.0
+        while j + 1 < m and j + 1 - i < CHUNK_BEADS:
+            ux, uy, uz = beads[j + 1, 0] - beads[i, 0], beads[j + 1, 1] - beads[i, 1], beads[j + 1, 2] - beads[i, 2]
+            uu = ux * ux + uy * uy + uz * uz
+            if uu > CHUNK_MM * CHUNK_MM:
+                break
+            worst = 0.0
+            for k in range(i + 1, j + 1):
+                vx, vy, vz = beads[k, 0] - beads[i, 0], beads[k, 1] - beads[i, 1], beads[k, 2] - beads[i, 2]
+                t = 0.0 if uu <= 0.0 else min(max((vx * ux + vy * uy + vz * uz) / uu, 0.0), 1.0)
+                vx, vy, vz = vx - t * ux, vy - t * uy, vz - t * uz
+                worst = max(worst, np.sqrt(vx * vx + vy * vy + vz * vz))
+            if worst > CHUNK_DEV_MM:
+                break
+            j += 1
+            dev = worst
+        ends[c] = i
+        for a in range(3):
+            seg[c, a] = beads[i, a]
+            seg[c, 3 + a] = beads[j, a]
+        seg[c, 6] = dev + CHUNK_SLACK_MM
+        low[c] = seq[i]
+        for k in range(i + 1, j + 1):
+            low[c] = min(low[c], seq[k])
+        c += 1
+        i = j + 1
+    ends[c] = m
+    return ends[:c + 1].copy(), seg[:c].copy(), low[:c].copy()
+
+
 def _sort_by_cell(beads, lo, cell, dims):  # pragma: no cover - compiled
-    """(the beads (m, 3) ordered by cell, stably (m,); each cell's first position (cells + 1,)):
+    """(the points (m, 3) ordered by cell, stably (m,); each cell's first position (cells + 1,)):
     cell (i, j, k) = floor((b - lo) / cell), clipped to dims, numbered (i·dims₁ + j)·dims₂ + k."""
     m = beads.shape[0]
     cells = dims[0] * dims[1] * dims[2]
@@ -318,6 +424,7 @@ def _sort_by_cell(beads, lo, cell, dims):  # pragma: no cover - compiled
 _inside = njit(cache=True, nogil=True)(_inside)
 _candidates_kernel = njit(cache=True, nogil=True)(_candidates_kernel)
 _sort_by_cell = njit(cache=True, nogil=True)(_sort_by_cell)
+_chunks = njit(cache=True, nogil=True)(_chunks)
 
 
 def first_bead_hits(C, R, lin, ang, seq, node_pose, node_c, node_r, node_reach, buckets: BeadBuckets,
@@ -331,11 +438,14 @@ def first_bead_hits(C, R, lin, ang, seq, node_pose, node_c, node_r, node_reach, 
     The sphere tree names each pose's failing nodes at ``CANDIDATE_LEVEL``; a bead can touch the
     clipped head only within ``node radius + lin + ang·reach + bead radius + clearance`` of one of
     them. The loop visits, per failing node, the cells of the bucket grid around its ball (skipping
-    a cell that lies wholly outside the ball, or wholly below the tip-allowance plane by the largest
-    margin a bead of the pose can need: none of its beads would pass the tests below; on a filament
-    print's dense beads this halves the loop), keeps each bead once per pose (the first node that
-    reaches it), drops beads the pose does not see yet (laid at a later sample), beads wholly below
-    the tip-allowance plane, and beads the head grid's lower bound clears; it then tests the rest
+    a cell whose chunks lie wholly outside the ball, or wholly below the tip-allowance plane by the
+    largest margin a bead of the pose can need: none of their beads would pass the tests below),
+    then the chunks there: a chunk whose beads the pose does not see yet, or whose widened segment
+    lies wholly below that plane, is dropped for the pose; one out of the node's ball is left for
+    the other nodes; the others' beads are taken once per pose, each within some node's ball (on a
+    filament print's dense beads, almost every chunk near the tip is dropped whole). Of those it
+    drops beads the pose does not see yet (laid at a later sample), beads wholly below the
+    tip-allowance plane, and beads the head grid's lower bound clears; it then tests the rest
     exactly, smallest bound first, and stops at the pose's first touching bead (exact
     point-triangle distances, a winding number where the bound allows the centre to be inside).
     node_pose (m,) ascending: the pose of each failing node; node_c (m, 3) head-frame centres,
@@ -353,7 +463,8 @@ def first_bead_hits(C, R, lin, ang, seq, node_pose, node_c, node_r, node_reach, 
     def run(lo, hi):  # poses lo..hi-1: node_start[lo..hi] still index the whole node arrays
         return _kernel(
             C[lo:hi], R[lo:hi], lin[lo:hi], ang[lo:hi], seq[lo:hi], node_start[lo:hi + 1], node_c, node_r,
-            node_reach, buckets.beads, buckets.seq, buckets.radii, buckets.cell_start, buckets.cell_beads, buckets.lo,
+            node_reach, buckets.chunk_beads, buckets.chunk_bseq, buckets.chunk_radii, buckets.chunk_seg,
+            buckets.chunk_first, buckets.chunk_seq, buckets.chunk_start, buckets.chunk_reach, buckets.lo,
             float(buckets.cell), buckets.dims, head_grid.dist_mm, horigin, float(head_grid.pitch_mm), hbox,
             float(head_grid.margin_mm), near.triangles, near.lo, near.cell_mm, near.dims, near.cap_mm, near.start,
             near.listed, near.sign_lo, near.sign_pitch, near.inside, sdepth,
