@@ -9,16 +9,22 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 CORPUS = REPO.parent / "shared" / "corpus"
+_LEFT_OUT = pytest.StashKey[dict]()  # what -m and -k deselected: {"all": n, "heavy": n}
 NC_SUFFIXES = {".nc", ".ngc", ".txt", ".gcode", ".mpf", ".h"}
 
 
 @pytest.fixture(autouse=True, scope="session")
-def _fresh_cache(tmp_path_factory):
+def _fresh_cache(tmp_path_factory, pytestconfig):
     """The suite's own cache folder (``ncfix.cache``): empty when the session starts, so no test
     reads grids or decompositions a developer's earlier runs left in ``~/.cache/ncfix``; tests after
-    the first to build something read it back (the cache's hit path runs in the suite too)."""
+    the first to build something read it back (the cache's hit path runs in the suite too). Under
+    pytest-xdist the workers share one folder in the run's temporary folder (the cache writes each
+    file under a temporary name and renames it into place): what one worker built, the other reads."""
+    root = tmp_path_factory.getbasetemp()  # a worker's is a folder of the run's
+    folder = (root.parent if hasattr(pytestconfig, "workerinput") else root) / "ncfix-cache"
+    folder.mkdir(exist_ok=True)
     with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("NCFIX_CACHE", str(tmp_path_factory.mktemp("ncfix-cache")))
+        patch.setenv("NCFIX_CACHE", str(folder))
         yield
 
 
@@ -54,21 +60,46 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
+def pytest_deselected(items):
+    """Counts what -m and -k left out, for the summary below (under pytest-xdist each worker
+    collects and deselects; the first to finish hands its counts to the controller)."""
+    config = items[0].config if items else None
+    if config is not None:
+        left = config.stash.setdefault(_LEFT_OUT, {"all": 0, "heavy": 0})
+        left["all"] += len(items)
+        left["heavy"] += sum(1 for item in items if "heavy" in item.keywords)
+
+
+def pytest_sessionfinish(session):
+    workeroutput = getattr(session.config, "workeroutput", None)  # set on a pytest-xdist worker
+    if workeroutput is not None:
+        workeroutput["left_out"] = session.config.stash.get(_LEFT_OUT, {"all": 0, "heavy": 0})
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error):
+    """pytest-xdist's controller: a worker's counts of what was left out (every worker collects
+    the same tests)."""
+    counts = getattr(node, "workeroutput", {}).get("left_out")
+    if counts is not None:
+        node.config.stash.setdefault(_LEFT_OUT, counts)
+
+
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
     """With -rs's list of skips and their reasons: what -m and -k left out, and how to run the heavy cases."""
-    left_out = terminalreporter.stats.get("deselected", [])
-    if not left_out:
+    left = config.stash.get(_LEFT_OUT, {"all": 0, "heavy": 0})
+    if not left["all"]:
         return
     expression = config.getoption("-m") or ""
-    heavy = sum(1 for item in left_out if "heavy" in item.keywords) if "not heavy" in expression else 0
+    heavy = left["heavy"] if "not heavy" in expression else 0
     terminalreporter.section("left out", sep="-")
     if heavy:
         terminalreporter.write_line(f"{heavy} heavy (corpus-wide, end-to-end and full property runs): "
                                     f"pytest -m heavy runs them, as CI's second step does")
-    if len(left_out) > heavy:
+    if left["all"] > heavy:
         chosen = " and ".join(f"{flag} {value!r}" for flag, value in (("-m", expression), ("-k", config.getoption("-k")))
                               if value)
-        terminalreporter.write_line(f"{len(left_out) - heavy} not chosen by {chosen}")
+        terminalreporter.write_line(f"{left['all'] - heavy} not chosen by {chosen}")
 
 
 _ORACLES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()

@@ -117,8 +117,8 @@ def test_disagreement_is_a_warning_and_never_changes_the_bead_model():
     low = run(text, bead_width=1.0, bead_height=0.3, filament_diameter=FILAMENT)
     assert any("more than the stated bead height 0.3" in w for w in low.warnings), low.warnings
     # the model is the stated bead whatever the derivation says: the same collisions either way
-    for options in ({"bead_width": 0.6, "bead_height": 0.64}, {"bead_width": 2.5, "bead_height": 0.64}):
-        with_d = run(text, filament_diameter=FILAMENT, **options)
+    for with_d, options in ((narrow, {"bead_width": 0.6, "bead_height": 0.64}),
+                            (wide, {"bead_width": 2.5, "bead_height": 0.64})):
         without = run(text, **options)
         assert with_d.collisions == without.collisions
         assert "implied_bead" not in without.summary
@@ -145,13 +145,15 @@ def test_the_width_formula_is_the_flat_bead_and_a_round_strand_below_it():
 
 
 def test_the_option_is_checked_and_read_from_the_config(tmp_path):
+    text = layers(0.5, 0.3, count=2)  # two layers: a layer height and a width to read back
     with pytest.raises(ConfigError, match="filament-diameter"):
-        run(layers(0.5, 0.3), filament_diameter=0)
+        run(text, filament_diameter=0)
     config = tmp_path / "ncfix.toml"
     config.write_text("[ncfix]\nfilament_diameter = 1.75\nbead_width = 0.5\nbead_height = 0.3\n")
-    report = run(layers(0.5, 0.3), config=config)
+    report = run(text, config=config)
     assert report.summary["implied_bead"]["filament_diameter_mm"] == 1.75
+    assert report.summary["implied_bead"]["width_mm"]["median"] == pytest.approx(0.5, rel=5e-3)
     # with a part (read once before the run for its box), measured once: the same figures
     mold = str(HEAD.parent / "recreated_mold.stl")
-    with_part = run(layers(0.5, 0.3), config=config, part=[mold]).summary["implied_bead"]
+    with_part = run(text, config=config, part=[mold]).summary["implied_bead"]
     assert with_part == report.summary["implied_bead"]

@@ -152,3 +152,13 @@ def test_docs_name_no_path_outside_the_clone_but_the_corpus():
             # (its programs are public and the tests find them there).
             assert re.fullmatch(r"\.\./shared/corpus(/[\w.-]+)*", match.group(0).rstrip(".")), \
                 f"{page.name} points users at {match.group(0)}"
+
+
+def test_ci_runs_the_readme_test_command():
+    """.ci/run runs the README's test command as a user would (its options included: -n, --dist, -m)."""
+    runs = [part.strip() for block in fenced(README_TEXT, "bash") for line in block.splitlines()
+            for part in line.split("&&") if part.strip().startswith(".venv/bin/pytest")]
+    assert runs, "the README shows the test command"
+    ci = (REPO / ".ci" / "run").read_text(encoding="utf-8")
+    for command in runs:
+        assert f'"$venv/bin/pytest" {command.removeprefix(".venv/bin/pytest ")}' in ci, f".ci/run does not run {command}"

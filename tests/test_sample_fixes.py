@@ -1,4 +1,8 @@
-"""Every bundled sample fixed by every strategy, checked end to end (heavy):
+"""Every bundled sample fixed by every strategy, checked end to end (heavy). The fix of a sample
+with a golden case (tests/golden/sample_*: test_golden.py checks that ncfix makes exactly its
+expected output, report and exit status, and that a second run on that output changes nothing)
+is read from the case's expected files, so what is checked here is that those files are right; the
+5,000-point samples, which have no golden case, are fixed here:
 
 - lossless: the same number of lines, and the lines that differ are exactly the report's changes
   (and ``summary.changed_blocks`` counts them);
@@ -12,9 +16,10 @@
   the output is one the report lists as unresolved;
 - local: every changed block lies within a ramp (⌈Θ/θ⌉ + 1 blocks) and one block of a block the
   check of the input flags (the report's ``collisions``): blocks far from any collision untouched;
-- idempotent: a clean output has nothing for ncfix to find (``--check`` on it: no collision), so a
-  second run changes nothing; an output with unresolved blocks is run again and must come back
-  byte for byte (``NOT_IDEMPOTENT`` would list known exceptions, checked to still fail: xfail);
+- idempotent (the samples without a golden case; test_golden.py checks the others): a clean
+  output has nothing for ncfix to find (``--check`` on it: no collision), so a second run changes
+  nothing; an output with unresolved blocks is run again and must come back byte for byte
+  (``NOT_IDEMPOTENT`` would list known exceptions, checked to still fail: xfail);
 - the report's exit status follows its unresolved blocks; with the graph, none is left by the
   search's round limit (``ROUND_LIMITED`` lists the known exceptions, checked to still be ones).
 
@@ -26,11 +31,15 @@ deposit wall has no part and deposits with its E words; the fixture F2 runs with
 from __future__ import annotations
 
 import io
+import json
+import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import golden_cases
 import ncfix
 from ncfix.geometry.frames import angle_between_deg
 from ncfix.nc.modal import Interpreter
@@ -75,10 +84,59 @@ def _settings(name: str, machine: str, mold: bool, strategy: str) -> dict:
             "bead_radius": BEAD_R if name == "deposit_wall.nc" else 0.0, "max_step": THETA}
 
 
+def _flags(settings: dict, folder: Path) -> tuple[str, ...]:
+    """The command line's flags for ``settings`` (of _settings), paths relative to ``folder``."""
+    def rel(path) -> str:
+        return os.path.relpath(path, folder)
+
+    if "config" in settings:
+        flags = ["-c", rel(settings["config"]), "--machine", settings["machine"]]
+    else:
+        flags = ["--machine", settings["machine"], "--head", rel(settings["head"])]
+        for key in ("standoff", "pitch", "bead_radius", "max_step"):
+            flags += [f"--{key.replace('_', '-')}", f"{settings[key]:g}"]
+    return (*flags, "--strategy", settings["strategy"])
+
+
 def _run(data: bytes, settings: dict, **more):
     out = io.BytesIO()
     report = ncfix.process(io.BytesIO(data), out, **settings, **more)
     return out.getvalue(), report
+
+
+@dataclass(frozen=True)
+class Fixed:
+    """What a fix made, as its JSON report says it (the report's lists and summary)."""
+
+    out: bytes
+    changes: list
+    unresolved: list
+    collisions: list
+    summary: dict
+    exit_code: int
+    golden: bool  # read from a golden case's expected files (test_golden.py runs them)
+
+
+def golden_case(name: str, strategy: str) -> golden_cases.Case | None:
+    """The golden case of a sample and strategy (tests/golden/sample_STEM_STRATEGY), if there is one."""
+    folder = golden_cases.GOLDEN / f"sample_{Path(name).stem}_{strategy}"
+    return golden_cases.load(folder) if folder.is_dir() else None
+
+
+def _fixed(name: str, data: bytes, settings: dict, strategy: str) -> Fixed:
+    """The sample's fix: its golden case's expected output and report, or (no golden case) a run."""
+    case = golden_case(name, strategy)
+    if case is None:
+        out, report = _run(data, settings)
+        return Fixed(out, report.changes, report.unresolved, report.collisions, report.summary, report.exit_code,
+                     golden=False)
+    # The case is this fix: the sample as input, run with the settings of _settings.
+    assert case.input.read_bytes() == data, case.name
+    assert case.args == _flags(settings, case.folder), case.name
+    want = golden_cases.expected(case)
+    report = json.loads(want.report)
+    return Fixed(want.out, report["changes"], report["unresolved"], report["collisions"], report["summary"],
+                 want.exit, golden=True)
 
 
 class Program:
@@ -159,8 +217,8 @@ def test_sample_fix(name, machine, mold, strategy):
 
     data = (SAMPLES / name).read_bytes()
     settings = _settings(name, machine, mold, strategy)
-    out, report = _run(data, settings)
-    s = report.summary
+    report = _fixed(name, data, settings, strategy)
+    out, s = report.out, report.summary
 
     # Lossless: only the reported lines changed, each counted once.
     before, after = data.splitlines(keepends=True), out.splitlines(keepends=True)
@@ -216,7 +274,9 @@ def test_sample_fix(name, machine, mold, strategy):
     if s["colliding_blocks_before"]:
         assert s["changed_blocks"] > 0 or unresolved
 
-    # Idempotent.
+    # Idempotent (test_golden.py runs ncfix again on a golden case's expected output).
+    if report.golden:
+        return
     if not unresolved:
         _, check = _run(out, settings, check=True)
         assert check.summary["colliding_blocks_before"] == 0 and check.exit_code == 0
@@ -252,7 +312,7 @@ def test_rechecks_find_the_same_hits_without_clearances(monkeypatch):
 
     data = (SAMPLES / "deposit_wall.nc").read_bytes()
     settings = _settings("deposit_wall.nc", "ijk", False, "epa")
-    want, _ = _run(data, settings)
+    want = _fixed("deposit_wall.nc", data, settings, "epa").out  # the fix with clearances throughout
     monkeypatch.setattr(PathChecker, "check", both)
     got, _ = _run(data, settings)
     assert got == want and want != data

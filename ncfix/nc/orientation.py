@@ -229,10 +229,10 @@ def choose(evidence: Evidence, source: str) -> Choice:
     the candidates (none, or several that the program cannot tell apart).
 
     Candidates: the built-in profiles that read every orientation word seen and at least one of
-    them as an orientation word. Then, in order: the ones that read the most of the words as
-    orientation words (A/C angles are not the S3 printer's program, whose A is its filament), a
-    profile whose extrusion letter is another's rotary word only when the program resets that
-    letter with G92; with E words, the profiles extruding on E; a profile that switches TCP by
+    them as an orientation word. Then, in this order: a profile whose extrusion letter is among the
+    words (the S3 printer's A, another's rotary word) only when the program resets that letter with
+    G92; the ones that read the most of the words as orientation words (A/C angles are not the S3
+    printer's program); with E words, the profiles extruding on E; a profile that switches TCP by
     codes (LinuxCNC's M428) only when the program uses one, and then over the others. A program
     without orientation words is read as ``ijk`` (the tool stays vertical under any profile)."""
     profiles = builtin_profiles()
