@@ -429,8 +429,10 @@ def _check_wall(folder: Path, monkeypatch) -> list:
 def test_a_fix_from_a_warm_cache_is_the_fix_from_a_cold_one(tmp_path, monkeypatch):
     folder = tmp_path / "cache"
     cold = _fix_ijk(folder, monkeypatch)
-    # No deposit: no near surface of the clipped head.
-    assert {p.name.split("-")[0] for p in folder.iterdir()} == {"grid", "head", "tree", "proximity"}
+    # The meshes as read, the clipped head, the mold's depth field; no deposit: no near surface
+    # of the clipped head.
+    assert {p.name.split("-")[0] for p in folder.iterdir()} == {"mesh", "clip", "grid", "depth", "head", "tree",
+                                                               "proximity"}
     _no_build(monkeypatch, grid_module, "build_distance_grid")
     _no_build(monkeypatch, head_module, "build_head_model")
     _no_build(monkeypatch, head_module, "build_sphere_tree")
