@@ -9,9 +9,8 @@ The proof is on ``DistanceGrid``, the exact band near the body on ``tighten_near
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
