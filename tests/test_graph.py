@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from ncfix.collision import split
-from ncfix.correct.candidates import SphereGrid, level_candidates
+from ncfix.correct import candidates
+from ncfix.correct.candidates import SphereGrid, level_candidates, nearest
 from ncfix.correct.graph import LIMIT_SLACK, LayeredGraph, _dense_min, cheapest_path
 from ncfix.geometry.frames import angle_between_deg, rotation_from_z
 
@@ -48,6 +49,46 @@ def obstacle_case(levels=40, blocked=range(15, 25), need_deg=8.0):
     for level in blocked:
         free[level] &= tilt_x[level] > need_deg  # only tilting toward +X by more than need_deg is free
     return programmed, cands, free
+
+
+def _levels(seed: int):
+    """(points, among) pairs as the graph's seeding meets them: a level's candidates (the grid's
+    cap about a programmed vector, and that vector), the coarse grid's cap against them, and the
+    level's candidates against a tested subset of them."""
+    rng = np.random.default_rng(seed)
+    fine, coarse = SphereGrid(1.0), SphereGrid(4.0)
+    programmed = rng.normal(size=(3, 3)) * [0.2, 0.2, 1.0]
+    programmed /= np.linalg.norm(programmed, axis=1, keepdims=True)
+    cands, valid = level_candidates(fine, programmed, 30.0)
+    for level, n0 in enumerate(programmed):
+        idx = np.flatnonzero(valid[level])
+        yield coarse.points[coarse.cap(n0, 30.0)], cands[level, idx]
+        tested = np.sort(rng.choice(idx, size=len(idx) // 16, replace=False))
+        yield cands[level, np.setdiff1d(idx, tested)], cands[level, tested]
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_nearest_candidate_is_the_one_the_dense_product_picks(seed, monkeypatch):
+    # On real levels, on random vectors, and where ties are exact (duplicates: the lowest index).
+    rng = np.random.default_rng(100 + seed)
+    random = rng.normal(size=(500, 3)), rng.normal(size=(300, 3))
+    random = tuple(v / np.linalg.norm(v, axis=1, keepdims=True) for v in random)
+    tied = random[1][rng.integers(0, 300, 200)]
+    cases = [*_levels(seed), random, (random[0], np.concatenate([tied, random[1], tied]))]
+    fallbacks = []
+    dense = candidates._nearest
+
+    def counted(points, among, margin):
+        out, clear = dense(points, among, margin)
+        fallbacks.append(not clear)
+        return out, clear
+
+    monkeypatch.setattr(candidates, "_nearest", counted)
+    for points, among in cases:
+        assert np.array_equal(nearest(points, among), np.argmax(points @ among.T, axis=1))
+    # Only the exact ties took the dense product (where its own products of equal vectors may
+    # differ in the last place: the loop could not have chosen as it does).
+    assert fallbacks[-1] and not any(fallbacks[:-1])
 
 
 def test_path_avoids_the_obstacle_with_small_steps_and_comes_back():
