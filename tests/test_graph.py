@@ -144,6 +144,47 @@ def test_wide_steps_search_every_edge_and_banned_edges_are_avoided():
     assert again is not None and (again[1], again[2]) != (path[1], path[2])
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_a_search_resumed_from_the_last_one_finds_what_a_new_graph_finds(seed):
+    """``cheapest`` computes again only the levels from the first one whose allowed vertices,
+    penalty or bans changed: each search of a lazy loop (vertices let in or out, bans, penalties
+    changed, late levels first and early ones too) gives the path and the costs a graph built
+    anew and searched once gives, on nearest-neighbour levels (θ = 3°) and dense ones (θ = 8°)."""
+    rng = np.random.default_rng(seed)
+    levels = 12
+    programmed = np.tile([0.0, 0.0, 1.0], (levels, 1))
+    cands, valid = level_candidates(SphereGrid(1.0), programmed, 10.0)
+    limits = np.where(np.arange(levels) % 2 == 0, 3.0, 8.0)
+    graph = LayeredGraph(cands, valid, programmed, limits)
+    bans = []
+    allowed = valid & (rng.random(valid.shape) < 0.85)
+    allowed[:, 0] = True
+    penalty = np.zeros(valid.shape)
+    resumed, found = [], 0
+    for change in range(10):
+        level = int(rng.integers(1, levels)) if change % 3 else int(rng.integers(levels // 2, levels))
+        if change % 4 == 1:
+            ban = (level, rng.choice(np.flatnonzero(valid[level - 1]), 30), rng.choice(np.flatnonzero(valid[level]), 30))
+            bans.append(ban)
+            graph.ban(*ban)
+        elif change % 4 == 2:
+            penalty[level, rng.integers(0, valid.shape[1], 20)] += 1.0
+        elif change:
+            allowed[level] = valid[level] & (rng.random(valid.shape[1]) < 0.85)
+            allowed[level, 0] = True  # the programmed path stays (as the strategy keeps it)
+        path = graph.cheapest(allowed, penalty)
+        resumed.append(graph._last.start)
+        found += path is not None
+        fresh = LayeredGraph(cands, valid, programmed, limits)
+        for ban in bans:
+            fresh.ban(*ban)
+        assert np.array_equal(fresh.cheapest(allowed, penalty), path)
+        np.testing.assert_array_equal(fresh._last.costs, graph._last.costs)
+    assert resumed[0] == 1 and max(resumed) > levels // 2 and found > 5  # resumed, late as well as early
+    graph.cheapest(allowed)
+    assert graph._last.start == 1  # a search without a penalty after one with it: anew
+
+
 @pytest.mark.parametrize("threads", ["2", "5"])
 def test_the_dense_step_is_the_same_on_any_number_of_threads(monkeypatch, threads):
     """The dense levels' targets are cut into runs for the cores (``split.map_runs``): each target
