@@ -6,6 +6,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from numba import njit
 
 from ncfix.collision import split
 from ncfix.correct import candidates
@@ -427,6 +428,64 @@ def test_the_dense_levels_pick_what_every_pair_says(seed):
     found = np.isfinite(want)
     assert np.all(every[found, pick[found]] <= want[found] + 1e-9)
     assert np.all(pick[~found] == 0)
+
+
+def _pair_by_pair(targets, turned, sources, cost, order, limit, plain, banned):
+    """The dense step's rule over every pair, sources in index order: the cheapest cost + step of
+    an allowed pair, the lowest source on a tie (what the compiled ``_dense_min``, sources by cost,
+    stopping early and screening blocks, must give bit for bit; ``order`` is not needed)."""
+    nb, na = targets.shape[0], turned.shape[0]
+    total, pick = np.full(nb, np.inf), np.zeros(nb, dtype=np.int64)
+    to_deg = 180.0 / np.pi
+    for i in range(nb):
+        for j in range(na):
+            if banned.shape[0] > 0 and banned[i, j]:
+                continue
+            cos_turned = targets[i, 0] * turned[j, 0] + targets[i, 1] * turned[j, 1] + targets[i, 2] * turned[j, 2]
+            step = np.arccos(min(max(cos_turned, -1.0), 1.0)) * to_deg
+            cos_plain = targets[i, 0] * sources[j, 0] + targets[i, 1] * sources[j, 1] + targets[i, 2] * sources[j, 2]
+            if step <= limit or (plain >= 0.0 and np.arccos(min(max(cos_plain, -1.0), 1.0)) * to_deg <= plain):
+                if cost[j] + step < total[i]:
+                    total[i], pick[i] = cost[j] + step, j
+    return total, pick
+
+
+_pair_by_pair = njit(cache=False)(_pair_by_pair)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_screened_dense_step_is_the_pair_by_pair_loop_bit_for_bit(seed):
+    # Levels as the graph meets them (the grid's caps about two programmed vectors 3° apart,
+    # costs growing away from a preferred direction, exact ties, a level of 180°) and random ones
+    # (turns, plain steps, bans).
+    rng = np.random.default_rng(200 + seed)
+    if seed < 3:
+        programmed = np.array([[0.0, 0.0, 1.0], [np.sin(0.05), 0.0, np.cos(0.05)]])
+        cands, valid = level_candidates(SphereGrid(1.0), programmed @ rotation_from_z(rng.normal(size=3) * [0.3, 0.3, 1]).T,
+                                        30.0)
+        sources, targets = cands[0][valid[0]], cands[1][valid[1]]
+        toward = sources[rng.integers(len(sources))]
+        cost = 0.2 * angle_between_deg(sources, toward) + rng.uniform(0.0, 2.0, len(sources))
+        cost[rng.random(len(sources)) < 0.3] = 7.5  # ties
+        cost[rng.random(len(sources)) < 0.1] += 1e4  # left colliding
+        turned, plain, banned = sources, -1.0, np.zeros((0, 0), dtype=bool)
+        limit = (10.0, 3.0, 180.0)[seed] * LIMIT_SLACK
+    else:
+        def unit(n):
+            v = rng.normal(size=(n, 3)) * [0.3, 0.3, 1.0] + [0.0, 0.0, 2.0]
+            return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+        sources, targets = unit(400), unit(300)
+        turned = sources @ _about_y(25.0).T
+        cost = np.round(rng.uniform(0.0, 40.0, len(sources)), 1)
+        limit, plain = 12.0, (9.0 if seed % 2 else -1.0)
+        banned = rng.random((len(targets), len(sources))) < 0.2 if seed == 5 else np.zeros((0, 0), dtype=bool)
+    order = np.argsort(cost, kind="stable")
+    total, pick = _dense_min(targets, turned, sources, cost, order, limit, plain, banned)
+    want_total, want_pick = _pair_by_pair(targets, turned, sources, cost, order, limit, plain, banned)
+    assert np.isfinite(want_total).sum() > len(targets) // 2
+    np.testing.assert_array_equal(total, want_total)
+    np.testing.assert_array_equal(pick, want_pick)
 
 
 class _ShadowEpisode(_ToyEpisode):

@@ -31,6 +31,9 @@ DENSE_ABOVE_DEG = 6.0
 # A step is allowed up to its limit times this (float noise never refuses a step at the limit);
 # ``LayeredGraph.steps`` and the compiled dense step (``_dense_min``) both apply it.
 LIMIT_SLACK = 1.0 + 1e-12
+# Sources screened at once by the dense step's compiled loop (``_dense_min``): a block is one
+# vectorised pass without square roots, and most blocks hold no pair worth a closer look.
+DENSE_BLOCK = 16
 
 
 @dataclass
@@ -269,38 +272,69 @@ def _dense_min(targets, turned, sources, cost, order, limit, plain, banned):
     none is allowed.) The sources are visited in ``order`` of cost and a target stops at the first
     costing more than its best so far (a step is never negative), and a pair whose chord alone
     costs more is skipped, so the angles of most pairs are never computed; ties go to the lowest
-    source index, as an argmin over the sources would."""
+    source index, as an argmin over the sources would.
+
+    The sources go DENSE_BLOCK at a time: a block is screened first, without square roots, for a
+    pair the pair-by-pair test could take (chord within the limit, cost plus chord within the
+    best); a block with none is passed over whole. The screen's bounds are widened far beyond
+    rounding (it may let through a pair the test refuses, never the reverse), and the pairs it
+    lets through go to the test as they are: the answer is the pair-by-pair loop's, bit for bit."""
     nb, na = targets.shape[0], turned.shape[0]
     total = np.full(nb, np.inf)
     pick = np.zeros(nb, dtype=np.int64)
     use_ban = banned.shape[0] > 0
     to_deg = 180.0 / np.pi
+    # The screen: chord² = 2 - 2·cos; its degrees and the limit's, squared, with the slack.
+    scale2 = (to_deg * (1.0 - 1e-9)) ** 2 * (1.0 - 1e-12)
+    reach2 = (limit / (to_deg * (1.0 - 1e-9))) ** 2 * (1.0 + 1e-12) if plain < 0.0 else np.inf
+    # The sources in order of cost, padded to whole blocks with unreachable ones.
+    padded = (na + DENSE_BLOCK - 1) // DENSE_BLOCK * DENSE_BLOCK
+    cs = np.full(padded, np.inf)
+    sx, sy, sz = np.zeros(padded), np.zeros(padded), np.zeros(padded)
+    for k in range(na):
+        j = order[k]
+        cs[k], sx[k], sy[k], sz[k] = cost[j], turned[j, 0], turned[j, 1], turned[j, 2]
     for i in range(nb):
         tx, ty, tz = targets[i, 0], targets[i, 1], targets[i, 2]
         best, arg = np.inf, -1
-        for k in range(na):
-            j = order[k]
-            c = cost[j]
-            if c > best:
+        for lo in range(0, padded, DENSE_BLOCK):
+            if cs[lo] > best:
                 break
-            if use_ban and banned[i, j]:
+            tol = 1e-12 * (abs(best) + 1.0)
+            maybe = False
+            for k in range(lo, lo + DENSE_BLOCK):
+                m = 2.0 - 2.0 * min(max(tx * sx[k] + ty * sy[k] + tz * sz[k], -1.0), 1.0)
+                gap = best - cs[k] + tol
+                maybe |= (m <= reach2) & (gap >= 0.0) & (m * scale2 <= gap * gap)
+            if not maybe:
                 continue
-            d = min(max(tx * turned[j, 0] + ty * turned[j, 1] + tz * turned[j, 2], -1.0), 1.0)
-            # The chord 2·sin(φ/2) = sqrt(2 - 2d) is never longer than the arc φ (a hair less
-            # here, for rounding): a cheap lower bound that skips most arc-cosines.
-            chord = np.sqrt(max(2.0 - 2.0 * d, 0.0)) * to_deg * (1.0 - 1e-9)
-            if c + chord > best or (chord > limit and plain < 0.0):
-                continue
-            step = np.arccos(d) * to_deg
-            if not step <= limit:
-                if plain < 0.0:
+            stop = False
+            for k in range(lo, min(lo + DENSE_BLOCK, na)):
+                c = cs[k]
+                if c > best:
+                    stop = True
+                    break
+                j = order[k]
+                if use_ban and banned[i, j]:
                     continue
-                e = min(max(tx * sources[j, 0] + ty * sources[j, 1] + tz * sources[j, 2], -1.0), 1.0)
-                if not np.arccos(e) * to_deg <= plain:
+                d = min(max(tx * sx[k] + ty * sy[k] + tz * sz[k], -1.0), 1.0)
+                # The chord 2·sin(φ/2) = sqrt(2 - 2d) is never longer than the arc φ (a hair less
+                # here, for rounding): a cheap lower bound that skips most arc-cosines.
+                chord = np.sqrt(max(2.0 - 2.0 * d, 0.0)) * to_deg * (1.0 - 1e-9)
+                if c + chord > best or (chord > limit and plain < 0.0):
                     continue
-            t = c + step
-            if t < best or (t == best and j < arg):
-                best, arg = t, j
+                step = np.arccos(d) * to_deg
+                if not step <= limit:
+                    if plain < 0.0:
+                        continue
+                    e = min(max(tx * sources[j, 0] + ty * sources[j, 1] + tz * sources[j, 2], -1.0), 1.0)
+                    if not np.arccos(e) * to_deg <= plain:
+                        continue
+                t = c + step
+                if t < best or (t == best and j < arg):
+                    best, arg = t, j
+            if stop:
+                break
         if arg >= 0:
             total[i], pick[i] = best, arg
     return total, pick
