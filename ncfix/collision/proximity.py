@@ -133,47 +133,45 @@ def _tris_within(a, b, thr2):  # pragma: no cover - compiled
     return False
 
 
-def _leaf_hit(c, r, thr2, grow, wx, wy, wz, j, head, part, part_lo, part_hi, lo, cell, dims, start, listed, only,
-              w):  # pragma: no cover - compiled
-    """The first part triangle listed in the cell of leaf j's centre (wx, wy, wz) that comes
-    within sqrt(thr2) of the leaf's triangle (those farther than ``grow`` from the centre
-    skipped); -1 when none. With ``only`` >= 0, that triangle alone, if listed. w: (3, 3) room
-    for the triangle placed at the pose."""
+def _place(c, r, head, j, w):  # pragma: no cover - compiled
+    """Head triangle j at tip c, rotation r, into w (3, 3)."""
+    for v in range(3):
+        x, y, z = head[j, v, 0], head[j, v, 1], head[j, v, 2]
+        for a in range(3):
+            w[v, a] = c[a] + r[a, 0] * x + r[a, 1] * y + r[a, 2] * z
+
+
+def _pair_reached(c, r, reach, j, t, leaf0, parent, center, radius, g, part, part_lo, part_hi, lo, cell, dims, start,
+                  listed):  # pragma: no cover - compiled
+    """Whether the descent of ``_within_kernel`` at tip c, rotation r puts head leaf j and part
+    triangle t to the pair test: the grid clears neither the leaf's ball nor any ball above it,
+    the cell of the leaf's centre lists t, and neither t's box nor its distance from the centre
+    rejects it (the descent's tests, in its arithmetic)."""
+    nd, wx, wy, wz = leaf0 + j, 0.0, 0.0, 0.0
+    while nd >= 0:
+        x, y, z = center[nd, 0], center[nd, 1], center[nd, 2]
+        px = c[0] + r[0, 0] * x + r[0, 1] * y + r[0, 2] * z
+        py = c[1] + r[1, 0] * x + r[1, 1] * y + r[1, 2] * z
+        pz = c[2] + r[2, 0] * x + r[2, 1] * y + r[2, 2] * z
+        if descent._grid_lb(px, py, pz, g) > radius[nd] + reach:
+            return False
+        if nd == leaf0 + j:
+            wx, wy, wz = px, py, pz
+        nd = parent[nd]
     q0 = int(np.floor((wx - lo[0]) / cell))
     q1 = int(np.floor((wy - lo[1]) / cell))
     q2 = int(np.floor((wz - lo[2]) / cell))
     if not (0 <= q0 < dims[0] and 0 <= q1 < dims[1] and 0 <= q2 < dims[2]):
-        return -1  # beyond the cells' box: no part triangle within their reach
+        return False
     q = (q0 * dims[1] + q1) * dims[2] + q2
-    placed = False
+    listed_here = False
     for e in range(start[q], start[q + 1]):
-        t = listed[e]
-        if only >= 0 and t != only:
-            continue
-        if (part_lo[t, 0] > wx + grow or part_lo[t, 1] > wy + grow or part_lo[t, 2] > wz + grow
-                or part_hi[t, 0] < wx - grow or part_hi[t, 1] < wy - grow or part_hi[t, 2] < wz - grow):
-            continue
-        if _tri_d2(wx, wy, wz, part[t]) > grow * grow:
-            continue
-        if not placed:
-            for v in range(3):
-                x, y, z = head[j, v, 0], head[j, v, 1], head[j, v, 2]
-                for a in range(3):
-                    w[v, a] = c[a] + r[a, 0] * x + r[a, 1] * y + r[a, 2] * z
-            placed = True
-        if _tris_within(w, part[t], thr2):
-            return t
-    return -1
-
-
-def _node_clear(c, r, nd, center, radius, reach, g):  # pragma: no cover - compiled
-    """(whether node nd's ball at the pose is cleared by the grid (no point of it within reach of
-    the part), its centre x, y, z at the pose)."""
-    x, y, z = center[nd, 0], center[nd, 1], center[nd, 2]
-    wx = c[0] + r[0, 0] * x + r[0, 1] * y + r[0, 2] * z
-    wy = c[1] + r[1, 0] * x + r[1, 1] * y + r[1, 2] * z
-    wz = c[2] + r[2, 0] * x + r[2, 1] * y + r[2, 2] * z
-    return descent._grid_lb(wx, wy, wz, g) > radius[nd] + reach, wx, wy, wz
+        listed_here |= listed[e] == t
+    grow = radius[leaf0 + j] + reach
+    return listed_here and not (
+        part_lo[t, 0] > wx + grow or part_lo[t, 1] > wy + grow or part_lo[t, 2] > wz + grow
+        or part_hi[t, 0] < wx - grow or part_hi[t, 1] < wy - grow or part_hi[t, 2] < wz - grow
+        or _tri_d2(wx, wy, wz, part[t]) > grow * grow)
 
 
 def _within_kernel(c, r, d, head, center, radius, child_start, child_count, parent, leaf0, stack_size, g, part,
@@ -185,72 +183,88 @@ def _within_kernel(c, r, d, head, center, radius, child_start, child_count, pare
     part grid's compiled bound (``descent._grid_lb``'s arrays).
 
     ``recent`` (k, 2): pairs (leaf, part triangle) found within d lately, most recent first,
-    -1 where none; each is tried first, through every test the descent would put it to (the
-    balls of the leaf and of every node above it not cleared by the grid, the triangle listed in
-    the leaf's cell and within its reach), so a pair found so is one the descent reaches: the
-    answer is the descent's. A pair found within d goes to the front of ``recent`` (one test at
-    a time: the caller's pairs are its state)."""
+    -1 where none; each is tried first: the pair test, then, for a pair within d, every test the
+    descent would put it to (the balls of the leaf and of every node above it not cleared by the
+    grid, the triangle listed in the leaf's cell and within its reach), so a pair found so is one
+    the descent reaches: the answer is the descent's. A pair found within d goes to the front of
+    ``recent`` (one test at a time: the caller's pairs are its state)."""
     reach = d + SLACK_MM
     thr2 = reach * reach
     w = np.empty((3, 3))
-    hit_leaf, hit_tri, found = -1, -1, 2
     for m in range(recent.shape[0]):
-        j = recent[m, 0]
+        j, t = recent[m, 0], recent[m, 1]
         if j < 0:
             break
-        nd = leaf0 + j
-        cleared = False
-        while nd >= 0 and not cleared:
-            cleared = _node_clear(c, r, nd, center, radius, reach, g)[0]
-            nd = parent[nd]
-        if cleared:
+        _place(c, r, head, j, w)
+        if _tris_within(w, part[t], thr2) and _pair_reached(c, r, reach, j, t, leaf0, parent, center, radius, g, part,
+                                                            part_lo, part_hi, lo, cell, dims, start, listed):
+            _to_front(recent, j, t)
+            return 2
+    stack = np.empty(stack_size, np.int64)
+    stack[0] = 0
+    top = 1
+    while top > 0:
+        top -= 1
+        nd = stack[top]
+        x, y, z = center[nd, 0], center[nd, 1], center[nd, 2]
+        wx = c[0] + r[0, 0] * x + r[0, 1] * y + r[0, 2] * z
+        wy = c[1] + r[1, 0] * x + r[1, 1] * y + r[1, 2] * z
+        wz = c[2] + r[2, 0] * x + r[2, 1] * y + r[2, 2] * z
+        if descent._grid_lb(wx, wy, wz, g) > radius[nd] + reach:
+            continue  # no point of the node's ball comes within d
+        if child_count[nd] > 0:
+            for s in range(child_count[nd] - 1, -1, -1):
+                stack[top] = child_start[nd] + s
+                top += 1
             continue
-        _, wx, wy, wz = _node_clear(c, r, leaf0 + j, center, radius, reach, g)
-        if _leaf_hit(c, r, thr2, radius[leaf0 + j] + reach, wx, wy, wz, j, head, part, part_lo, part_hi, lo, cell,
-                     dims, start, listed, recent[m, 1], w) >= 0:
-            hit_leaf, hit_tri = j, recent[m, 1]
-            break
-    if hit_leaf < 0:
-        found = 1
-        stack = np.empty(stack_size, np.int64)
-        stack[0] = 0
-        top = 1
-        while top > 0 and hit_leaf < 0:
-            top -= 1
-            nd = stack[top]
-            cleared, wx, wy, wz = _node_clear(c, r, nd, center, radius, reach, g)
-            if cleared:
-                continue  # no point of the node's ball comes within d
-            if child_count[nd] > 0:
-                for s in range(child_count[nd] - 1, -1, -1):
-                    stack[top] = child_start[nd] + s
-                    top += 1
+        j = nd - leaf0
+        # The part triangles within d of the leaf's ball are listed in the cell of its centre.
+        q0 = int(np.floor((wx - lo[0]) / cell))
+        q1 = int(np.floor((wy - lo[1]) / cell))
+        q2 = int(np.floor((wz - lo[2]) / cell))
+        if not (0 <= q0 < dims[0] and 0 <= q1 < dims[1] and 0 <= q2 < dims[2]):
+            continue  # beyond the cells' box: no part triangle within their reach
+        q = (q0 * dims[1] + q1) * dims[2] + q2
+        if start[q] == start[q + 1]:
+            continue
+        grow = radius[nd] + reach  # a part triangle within d of the leaf's triangle is this near its centre
+        placed = False
+        for e in range(start[q], start[q + 1]):
+            t = listed[e]
+            if (part_lo[t, 0] > wx + grow or part_lo[t, 1] > wy + grow or part_lo[t, 2] > wz + grow
+                    or part_hi[t, 0] < wx - grow or part_hi[t, 1] < wy - grow or part_hi[t, 2] < wz - grow):
                 continue
-            # The part triangles within d of the leaf's ball are listed in the cell of its centre;
-            # a part triangle within d of the leaf's triangle is this near its centre.
-            t = _leaf_hit(c, r, thr2, radius[nd] + reach, wx, wy, wz, nd - leaf0, head, part, part_lo, part_hi, lo,
-                          cell, dims, start, listed, -1, w)
-            if t >= 0:
-                hit_leaf, hit_tri = nd - leaf0, t
-    if hit_leaf < 0:
-        return 0
-    m = recent.shape[0] - 1  # to the front, out of its old place or off the end
+            if _tri_d2(wx, wy, wz, part[t]) > grow * grow:
+                continue
+            if not placed:
+                _place(c, r, head, j, w)
+                placed = True
+            if _tris_within(w, part[t], thr2):
+                _to_front(recent, j, t)
+                return 1
+    return 0
+
+
+def _to_front(recent, j, t):  # pragma: no cover - compiled
+    """The pair (j, t) to the front of ``recent`` (k, 2), out of its old place or off the end."""
+    m = recent.shape[0] - 1
     for k in range(recent.shape[0]):
-        if recent[k, 0] == hit_leaf and recent[k, 1] == hit_tri:
+        if recent[k, 0] == j and recent[k, 1] == t:
             m = k
             break
     for k in range(m, 0, -1):
         recent[k, 0], recent[k, 1] = recent[k - 1, 0], recent[k - 1, 1]
-    recent[0, 0], recent[0, 1] = hit_leaf, hit_tri
-    return found
+    if recent.shape[0]:
+        recent[0, 0], recent[0, 1] = j, t
 
 
 _seg_seg_d2 = njit(cache=True, nogil=True)(_seg_seg_d2)
 _edge_crosses = njit(cache=True, nogil=True)(_edge_crosses)
 _plane_apart = njit(cache=True, nogil=True)(_plane_apart)
 _tris_within = njit(cache=True, nogil=True)(_tris_within)
-_leaf_hit = njit(cache=True, nogil=True)(_leaf_hit)
-_node_clear = njit(cache=True, nogil=True)(_node_clear)
+_place = njit(cache=True, nogil=True)(_place)
+_pair_reached = njit(cache=True, nogil=True)(_pair_reached)
+_to_front = njit(cache=True, nogil=True)(_to_front)
 _within_kernel = njit(cache=True, nogil=True)(_within_kernel)
 
 
