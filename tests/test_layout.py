@@ -24,6 +24,8 @@ _NO_HEAD = "the checker's stack (coal, trimesh, compiled kernels: seconds) loads
 _WARM = ("trimesh (with scipy and networkx: about a second) loads only to read a mesh or build a model the "
          "cache does not hold: a warm-cache check never imports it (test_startup)")
 _KD_TREES = "scipy's k-d trees load only where a run searches points with them, never in a warm-cache check"
+_WARM_FIX = ("trimesh and scipy's qhull load only to hull the head or decompose a part the cache does not hold: "
+             "a warm-cache fix never imports them (test_startup)")
 LAZY_IMPORTS = {
     ("ncfix.api", "ncfix.pipeline"): _LIGHT_START,
     ("ncfix.api", "ncfix.profiles"): _LIGHT_START,
@@ -46,6 +48,11 @@ LAZY_IMPORTS = {
     ("ncfix.collision.head", "scipy"): _KD_TREES,
     ("ncfix.collision.deposit", "scipy"): _KD_TREES,
     ("ncfix.collision.implied", "scipy"): _KD_TREES,
+    ("ncfix.correct.candidates", "scipy"): _KD_TREES,
+    ("ncfix.correct.graph", "scipy"): _KD_TREES,
+    ("ncfix.correct.decompose", "trimesh"): _WARM_FIX,
+    ("ncfix.correct.epa", "trimesh"): _WARM_FIX,
+    ("ncfix.correct.epa", "scipy"): _WARM_FIX,
 }
 
 

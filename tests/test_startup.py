@@ -82,12 +82,13 @@ def test_a_cpu_fix_never_imports_torch(tmp_path):
 HEAVY = ("trimesh", "networkx", "torch", "scipy.spatial", "scipy.sparse", "scipy.optimize")
 
 
-def _warm_check(tmp_path: Path, runs: str) -> None:
+def _warm_check(tmp_path: Path, runs: str, heavy_modules: tuple[str, ...] = HEAVY) -> None:
     """``runs`` (``main([...])`` calls) twice, each time in a fresh interpreter with one cache
-    folder: the first fills it, the second must import none of ``HEAVY``."""
+    folder: the first fills it, the second must import none of ``heavy_modules``."""
     env = {**os.environ, "PYTHONPATH": str(REPO), "NCFIX_CACHE": str(tmp_path / "cache")}
     code = "import sys\nfrom ncfix.cli import main\n" + textwrap.dedent(runs) + textwrap.dedent(f"""
-        heavy = sorted(m for m in sys.modules if m in {HEAVY!r} or m.startswith(tuple(h + "." for h in {HEAVY!r})))
+        heavy = sorted(m for m in sys.modules
+                       if m in {heavy_modules!r} or m.startswith(tuple(h + "." for h in {heavy_modules!r})))
         print("HEAVY", heavy)
         """)
     for warm in (False, True):
@@ -114,6 +115,19 @@ def test_a_warm_cache_check_imports_no_trimesh_scipy_spatial_or_torch(tmp_path):
         assert main([{str(SAMPLES / "deposit_wall.nc")!r}, "--machine", "ijk", "--head", head, "--standoff", "6",
                      "--bead-radius", "1", "--pitch", "0.5", "--check", "-q", "-o", "beads.nc"]) in (0, 1)
         """)
+
+
+def test_a_warm_cache_fix_imports_no_trimesh_or_torch(tmp_path):
+    """A fix (the EPA strategy: the head's hulls and the part's CoACD pieces from the cache) of a
+    wall across the path: no trimesh (nor networkx), no torch. scipy's k-d trees are allowed: the
+    graph fallback that frees this wall searches with them."""
+    (tmp_path / "ncfix.toml").write_text("[ncfix]\n")
+    _warm_check(tmp_path, f"""
+        assert main([{str(REPO / "tests" / "golden" / "fix_ijk" / "input.nc")!r}, "--machine", "ijk",
+                     "--head", {str(SAMPLES / "deposition_head.stl")!r},
+                     "--part", {str(REPO / "tests" / "golden" / "meshes" / "wall_x.stl")!r}, "--bead-radius", "0",
+                     "-q", "-o", "fixed.nc"]) == 0
+        """, heavy_modules=("trimesh", "networkx", "torch"))
 
 
 @pytest.mark.heavy

@@ -9,10 +9,10 @@ The grid is a Fibonacci lattice: near-uniform, deterministic, any size.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 
 def fibonacci_sphere(count: int) -> np.ndarray:
@@ -36,7 +36,14 @@ class SphereGrid:
         self.resolution_deg = float(resolution_deg)
         count = int(math.ceil(4.0 * math.pi / math.radians(resolution_deg) ** 2))
         self.points = fibonacci_sphere(count)
-        self.tree = cKDTree(self.points)
+
+    @functools.cached_property
+    def tree(self):
+        """A k-d tree of the points, built on first use (the EPA strategy holds a graph fallback that
+        may never search; importing scipy.spatial takes 0.1 s)."""
+        from scipy.spatial import cKDTree
+
+        return cKDTree(self.points)
 
     def cap(self, centre: np.ndarray, radius_deg: float) -> np.ndarray:
         """Grid indices (sorted) within ``radius_deg`` of the unit vector ``centre``."""
