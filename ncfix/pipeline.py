@@ -209,13 +209,14 @@ def build_stages(options: Options, profile: Profile, report: Report, where: Prog
                       bead_radius_mm=bead.radius_mm, tip_allowance_mm=options.tip_allowance,
                       device=options.device, part_bounds_mm=reach_box, part_reach=part_reach, bead_drop_mm=bead.drop_mm,
                       bead_shape=bead)
+    box = where.box if where is not None else None
     if options.check:
-        return [CheckStage(checker, profile, options, report, placed_parts=loaded_parts)]
+        return [CheckStage(checker, profile, options, report, placed_parts=loaded_parts, program_box=box)]
     from ncfix.correct import strategies
     from ncfix.correct.stage import CorrectStage
 
     return [CorrectStage(checker, profile, options, report, strategies.make_strategy(options),
-                         placed_parts=loaded_parts)]
+                         placed_parts=loaded_parts, program_box=box)]
 
 
 def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>",
