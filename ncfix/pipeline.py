@@ -70,7 +70,7 @@ def program_box(stream: BinaryIO, profile: Profile, options: Options, source: st
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     cubes, last = [np.zeros((0, 3), dtype=np.int64)], None
     try:
-        chunks = read_chunks(stream, Interpreter(profile, source, options.deposit_codes))
+        chunks = read_chunks(stream, Interpreter(profile, source, options.deposit_codes, compiled_reader=True))
         for chunk, poses in program_poses(chunks, PoseMap(profile)):
             P = poses.P
             tips = [P, P + options.standoff * poses.N]
@@ -236,7 +236,8 @@ def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>",
     report = Report(input=source, machine=profile.name, options=options)
     if note is not None:
         report.notes.append(note)
-    interpreter = Interpreter(profile, source, options.deposit_codes)
+    # A check loads numba for its kernels anyway: its reader is the compiled one from the start.
+    interpreter = Interpreter(profile, source, options.deposit_codes, compiled_reader=options.head is not None)
     where = program_box(src, profile, options, source) if options.head is not None and (options.part or options.platform) \
         else None
     stages = build_stages(options, profile, report, where)
