@@ -34,9 +34,9 @@ _MIN_RUN = 8  # shorter runs of plain lines are cheaper one by one than as array
 TRAVEL_LIMIT_MM = 1.0e6
 # Lines read with the numpy plain reader before a run that has not loaded numba switches to the
 # compiled one: numba's start (import, compiler target, cached code: about 0.5 s of CPU) costs
-# about what the numpy reader spends on this many lines (4-6 µs each, the compiled one 0.2-0.3).
-# A short program never pays for numba; a long one pays for both readers at most once each.
-COMPILED_AFTER_LINES = 100_000
+# about what the numpy reader spends on this many lines (2-3 µs each, the compiled one 0.2-0.3).
+# A short program never pays for numba; a long one pays at most about that much twice.
+COMPILED_AFTER_LINES = 200_000
 # Words of an arc: centre offsets and radius (Siemens CR=; Klartext CR is a block keyword, no value).
 _ARC_WORDS = {"I", "J", "K", "R", "CR"}
 # Non-finite values as float() would read them: `Xnan`, `Kinf`, `Xinfinity` (the lexer sees one
