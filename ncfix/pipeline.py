@@ -45,9 +45,10 @@ class Stage(Protocol):
 
 def read_chunks(stream: BinaryIO, interpreter: Interpreter, lines_per_chunk: int = CHUNK_LINES) -> Iterator[Chunk]:
     """The input as chunks of raw lines (bytes, ends kept), each read by the modal interpreter."""
+    take = getattr(stream, "take", None)  # ncfix.fileio.Input reads a chunk's lines in one call
     lineno = 1
     while True:
-        lines = list(islice(stream, lines_per_chunk))
+        lines = take(lines_per_chunk) if take is not None else list(islice(stream, lines_per_chunk))
         if not lines:
             return
         yield interpreter.feed_chunk(lines, lineno)
