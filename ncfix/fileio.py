@@ -120,6 +120,16 @@ class Input:
         return getattr(self.raw, attr)
 
 
+def input_size(src: str | BinaryIO) -> int | None:
+    """Bytes to read, when the input is a regular file (a path, or a stream such as standard
+    input redirected from one); None for a pipe, a device or an empty file."""
+    try:
+        info = os.stat(src) if isinstance(src, str) else os.fstat(src.fileno())
+    except (OSError, AttributeError, ValueError):  # io.UnsupportedOperation is both
+        return None
+    return info.st_size if stat.S_ISREG(info.st_mode) and info.st_size > 0 else None
+
+
 def _is_regular_target(path: str) -> tuple[bool, Path]:
     """(True, the file to replace: symlinks followed) for a regular file or a new name; (False,
     the path) for anything else that exists (device node, FIFO, socket, ``/dev/stdout``: stat

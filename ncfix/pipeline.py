@@ -13,9 +13,10 @@ import numpy as np
 
 from ncfix.config import Options
 from ncfix.errors import ConfigError
+from ncfix.fileio import input_size
 from ncfix.kinematics.poses import PoseMap, program_poses
 from ncfix.nc.chunk import Chunk
-from ncfix.nc.modal import Interpreter
+from ncfix.nc.modal import COMPILED_AFTER_LINES, Interpreter
 from ncfix.nc.orientation import resolve_auto
 from ncfix.nc.writer import Writer
 from ncfix.profiles import Profile, load_profile
@@ -23,6 +24,9 @@ from ncfix.report import Report
 
 AUTO = "auto"  # --machine auto: the profile is chosen from the program (ncfix.nc.orientation)
 CHUNK_LINES = 4096  # lines read and interpreted together; memory is bounded by this and the window
+# A motion line takes about this many bytes or more: a regular file larger than this many times
+# ncfix.nc.modal.COMPILED_AFTER_LINES is read with the compiled reader from its first line.
+LINE_BYTES = 40
 
 
 @dataclass(frozen=True)
@@ -237,8 +241,10 @@ def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>",
     report = Report(input=source, machine=profile.name, options=options)
     if note is not None:
         report.notes.append(note)
-    # A check loads numba for its kernels anyway: its reader is the compiled one from the start.
-    interpreter = Interpreter(profile, source, options.deposit_codes, compiled_reader=options.head is not None)
+    # A check loads numba for its kernels anyway, and a long file pays for it: the compiled
+    # reader from the start. Otherwise (a pipe too) the interpreter decides as it reads.
+    compiled = options.head is not None or (input_size(src) or 0) > COMPILED_AFTER_LINES * LINE_BYTES
+    interpreter = Interpreter(profile, source, options.deposit_codes, compiled_reader=compiled)
     where = program_box(src, profile, options, source) if options.head is not None and (options.part or options.platform) \
         else None
     stages = build_stages(options, profile, report, where)
