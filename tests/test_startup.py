@@ -31,6 +31,43 @@ def test_importing_the_command_line_does_not_import_torch(tmp_path):
     assert done.returncode == 0, done.stderr
 
 
+def test_a_pass_through_imports_no_numba_or_scipy(tmp_path):
+    """A run without --head needs no compiled kernel: it reads the program with the numpy reader
+    and computes no rotation, so numba and the scipy its compiler loads (about 0.5 s of start-up
+    together) are never imported; each kind of profile (tool vectors, rotary words, a dialect
+    chosen by --machine auto). The output is the input, byte for byte."""
+    (tmp_path / "ncfix.toml").write_text("[ncfix]\n")  # not samples/ncfix.toml (which names a head)
+    runs = [("bathtub_273.nc", "ijk"), ("bathtub_273_table_ac.nc", "table-ac"), ("bathtub_273_sinumerik.mpf", "auto")]
+    done = _run_python(f"""
+        import sys
+        from ncfix.cli import main
+        for name, machine in {runs!r}:
+            assert main([{str(SAMPLES)!r} + "/" + name, "--machine", machine, "-o", name]) == 0
+        loaded = sorted(m for m in sys.modules if m.partition(".")[0] in ("numba", "scipy", "llvmlite"))
+        assert not loaded, f"a pass-through imported {{loaded[:5]}}"
+        """, tmp_path)
+    assert done.returncode == 0, done.stdout + done.stderr
+    for name, _ in runs:
+        assert (tmp_path / name).read_bytes() == (SAMPLES / name).read_bytes()
+
+
+def test_a_file_longer_than_the_numpy_reader_reads_loads_the_compiled_one_at_once(tmp_path):
+    """A regular file larger than ``COMPILED_AFTER_LINES`` lines of ``LINE_BYTES`` is read with the
+    compiled reader from its first line (numba paid once, not after the numpy reader's share):
+    here every file counts as long. The output is still the input."""
+    (tmp_path / "ncfix.toml").write_text("[ncfix]\n")
+    done = _run_python(f"""
+        import sys
+        import ncfix.pipeline
+        from ncfix.cli import main
+        ncfix.pipeline.LINE_BYTES = 0
+        assert main([{str(SAMPLES / "bathtub_273.nc")!r}, "--machine", "ijk", "-q", "-o", "out.nc"]) == 0
+        assert "numba" in sys.modules, "a long file was not read with the compiled reader"
+        """, tmp_path)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert (tmp_path / "out.nc").read_bytes() == (SAMPLES / "bathtub_273.nc").read_bytes()
+
+
 def _no_torch_run(tmp_path: Path, runs: str) -> None:
     """``runs`` (lines calling ``main(common + [...])``) in a fresh interpreter on deposit_wall.nc
     with the sample head and a part below the wall (gridded and looked up, never hit)."""
