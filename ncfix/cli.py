@@ -4,11 +4,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import io
 import logging
 import os
 import signal
-import stat
 import sys
 import traceback
 from collections.abc import Callable, Iterator
@@ -19,7 +17,7 @@ from ncfix.api import process_options
 from ncfix.config import (DEVICES, OPTION_NAMES, PIVOTS, STRATEGIES, Options, build_options, confine_outputs,
                           load_config)
 from ncfix.errors import InternalError, NcfixError
-from ncfix.fileio import Output, remove_temporary_files
+from ncfix.fileio import Output, input_size, remove_temporary_files
 from ncfix.version import __version__
 
 EXIT_OK, EXIT_COLLISIONS, EXIT_USAGE = 0, 1, 2
@@ -263,7 +261,7 @@ def _progress(src: str | BinaryIO, enabled: bool) -> Iterator[Callable[[int, int
     from rich.progress import (BarColumn, DownloadColumn, Progress, SpinnerColumn, TextColumn,
                                TimeElapsedColumn, TimeRemainingColumn)
 
-    total = _input_size(src)
+    total = input_size(src)
     console = Console(stderr=True)
     lines = TextColumn("{task.fields[lines]:,} lines")
     if total:
@@ -285,12 +283,3 @@ def _stderr_is_terminal() -> bool:
         return sys.stderr.isatty()
     except (AttributeError, ValueError):
         return False
-
-
-def _input_size(src: str | BinaryIO) -> int | None:
-    """Bytes to read, when the input is a regular file (a path, or standard input redirected from one)."""
-    try:
-        info = os.stat(src) if isinstance(src, str) else os.fstat(src.fileno())
-    except (OSError, AttributeError, ValueError, io.UnsupportedOperation):
-        return None
-    return info.st_size if stat.S_ISREG(info.st_mode) and info.st_size > 0 else None

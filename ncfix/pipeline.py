@@ -13,9 +13,10 @@ import numpy as np
 
 from ncfix.config import Options
 from ncfix.errors import ConfigError
+from ncfix.fileio import input_size
 from ncfix.kinematics.poses import PoseMap, program_poses
 from ncfix.nc.chunk import Chunk
-from ncfix.nc.modal import Interpreter
+from ncfix.nc.modal import COMPILED_AFTER_LINES, Interpreter
 from ncfix.nc.orientation import resolve_auto
 from ncfix.nc.writer import Writer
 from ncfix.profiles import Profile, load_profile
@@ -23,6 +24,9 @@ from ncfix.report import Report
 
 AUTO = "auto"  # --machine auto: the profile is chosen from the program (ncfix.nc.orientation)
 CHUNK_LINES = 4096  # lines read and interpreted together; memory is bounded by this and the window
+# A motion line takes about this many bytes or more: a regular file larger than this many times
+# ncfix.nc.modal.COMPILED_AFTER_LINES is read with the compiled reader from its first line.
+LINE_BYTES = 40
 
 
 @dataclass(frozen=True)
@@ -45,9 +49,10 @@ class Stage(Protocol):
 
 def read_chunks(stream: BinaryIO, interpreter: Interpreter, lines_per_chunk: int = CHUNK_LINES) -> Iterator[Chunk]:
     """The input as chunks of raw lines (bytes, ends kept), each read by the modal interpreter."""
+    take = getattr(stream, "take", None)  # ncfix.fileio.Input reads a chunk's lines in one call
     lineno = 1
     while True:
-        lines = list(islice(stream, lines_per_chunk))
+        lines = take(lines_per_chunk) if take is not None else list(islice(stream, lines_per_chunk))
         if not lines:
             return
         yield interpreter.feed_chunk(lines, lineno)
@@ -70,7 +75,7 @@ def program_box(stream: BinaryIO, profile: Profile, options: Options, source: st
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     cubes, last = [np.zeros((0, 3), dtype=np.int64)], None
     try:
-        chunks = read_chunks(stream, Interpreter(profile, source, options.deposit_codes))
+        chunks = read_chunks(stream, Interpreter(profile, source, options.deposit_codes, compiled_reader=True))
         for chunk, poses in program_poses(chunks, PoseMap(profile)):
             P = poses.P
             tips = [P, P + options.standoff * poses.N]
@@ -209,13 +214,14 @@ def build_stages(options: Options, profile: Profile, report: Report, where: Prog
                       bead_radius_mm=bead.radius_mm, tip_allowance_mm=options.tip_allowance,
                       device=options.device, part_bounds_mm=reach_box, part_reach=part_reach, bead_drop_mm=bead.drop_mm,
                       bead_shape=bead)
+    box = where.box if where is not None else None
     if options.check:
-        return [CheckStage(checker, profile, options, report, placed_parts=loaded_parts)]
+        return [CheckStage(checker, profile, options, report, placed_parts=loaded_parts, program_box=box)]
     from ncfix.correct import strategies
     from ncfix.correct.stage import CorrectStage
 
     return [CorrectStage(checker, profile, options, report, strategies.make_strategy(options),
-                         placed_parts=loaded_parts)]
+                         placed_parts=loaded_parts, program_box=box)]
 
 
 def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>",
@@ -236,7 +242,10 @@ def run(src: BinaryIO, dst: BinaryIO, options: Options, source: str = "<stdin>",
     report = Report(input=source, machine=profile.name, options=options)
     if note is not None:
         report.notes.append(note)
-    interpreter = Interpreter(profile, source, options.deposit_codes)
+    # A check loads numba for its kernels anyway, and a long file pays for it: the compiled
+    # reader from the start. Otherwise (a pipe too) the interpreter decides as it reads.
+    compiled = options.head is not None or (input_size(src) or 0) > COMPILED_AFTER_LINES * LINE_BYTES
+    interpreter = Interpreter(profile, source, options.deposit_codes, compiled_reader=compiled)
     where = program_box(src, profile, options, source) if options.head is not None and (options.part or options.platform) \
         else None
     stages = build_stages(options, profile, report, where)

@@ -178,7 +178,7 @@ def label_program(
     """
     profile = load_profile(machine)
     ref = ExactReference(head, parts, tip_allowance_mm=tip_allowance_mm)
-    interpreter = Interpreter(profile, path, deposit_codes)
+    interpreter = Interpreter(profile, path, deposit_codes, compiled_reader=True)  # one chunk: see cost.program_vectors
     with open(path, "rb") as handle:
         chunk = interpreter.feed_chunk(handle.readlines(), 1)
     moving = np.flatnonzero(chunk.motion >= 0)

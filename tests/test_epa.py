@@ -74,7 +74,7 @@ def test_decomposition_is_computed_once_then_read_from_the_cache(tmp_path):
     part = l_shape()
     cold = decompose(part, cache_dir=tmp_path)
     assert not cold.cached and len(cold.pieces) == 2
-    assert all(p.is_convex and p.is_watertight for p in cold.pieces)
+    assert all(p.to_trimesh().is_convex and p.to_trimesh().is_watertight for p in cold.pieces)
     assert list(tmp_path.iterdir()) == [tmp_path / f"coacd-{cold.key}.npz"]
     warm = decompose(part, cache_dir=tmp_path)
     assert warm.cached and warm.key == cold.key and warm.seconds < cold.seconds

@@ -24,6 +24,10 @@ _NO_HEAD = "the checker's stack (coal, trimesh, compiled kernels: seconds) loads
 _WARM = ("trimesh (with scipy and networkx: about a second) loads only to read a mesh or build a model the "
          "cache does not hold: a warm-cache check never imports it (test_startup)")
 _KD_TREES = "scipy's k-d trees load only where a run searches points with them, never in a warm-cache check"
+_WARM_FIX = ("trimesh and scipy's qhull load only to hull the head or decompose a part the cache does not hold: "
+             "a warm-cache fix never imports them (test_startup)")
+_NO_NUMBA = ("numba (with the scipy.linalg it loads: about 0.5 s with its compiler's start) loads only with a "
+             "compiled kernel's first call: a pass-through never imports it (test_startup)")
 LAZY_IMPORTS = {
     ("ncfix.api", "ncfix.pipeline"): _LIGHT_START,
     ("ncfix.api", "ncfix.profiles"): _LIGHT_START,
@@ -32,6 +36,8 @@ LAZY_IMPORTS = {
     ("ncfix.cli", "ncfix.report.summary"): "rich and numpy load only when a summary is printed",
     ("ncfix.cli", "rich"): "rich loads only when a progress bar is shown",
     ("ncfix.config", "ncfix.geometry.place"): _LIGHT_START + " (a mesh placement)",
+    ("ncfix.geometry.frames", "ncfix.geometry.rodrigues"): _NO_NUMBA + " (the profiles' kinematics import frames)",
+    ("ncfix.nc.modal", "ncfix.nc.plain_jit"): _NO_NUMBA + " (the numpy reader reads a short program)",
     ("ncfix.pipeline", "ncfix.collision"): _NO_HEAD,
     ("ncfix.pipeline", "ncfix.correct"): _NO_HEAD,
     ("ncfix.pipeline", "ncfix.geometry"): _NO_HEAD,
@@ -46,6 +52,11 @@ LAZY_IMPORTS = {
     ("ncfix.collision.head", "scipy"): _KD_TREES,
     ("ncfix.collision.deposit", "scipy"): _KD_TREES,
     ("ncfix.collision.implied", "scipy"): _KD_TREES,
+    ("ncfix.correct.candidates", "scipy"): _KD_TREES,
+    ("ncfix.correct.graph", "scipy"): _KD_TREES,
+    ("ncfix.correct.decompose", "trimesh"): _WARM_FIX,
+    ("ncfix.correct.epa", "trimesh"): _WARM_FIX,
+    ("ncfix.correct.epa", "scipy"): _WARM_FIX,
 }
 
 

@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from ncfix.errors import ProgramError
+from ncfix.nc import modal
 from ncfix.nc.modal import Interpreter
+from ncfix.pipeline import CHUNK_LINES
 from ncfix.profiles import load_profile
 
 from conftest import corpus_path
@@ -153,17 +155,17 @@ G1 X+3 Y-.25 Z1.
 """
 
 
-def chunked(data: bytes, machine: str, size: int):
-    interp = Interpreter(load_profile(machine))
+def chunked(data: bytes, machine: str, size: int, **kwargs):
+    interp = Interpreter(load_profile(machine), **kwargs)
     lines = data.splitlines(keepends=True)
     return [interp.feed_chunk(lines[i:i + size], i + 1) for i in range(0, len(lines), size)]
 
 
-def assert_chunks_match_lines(data: bytes, machine: str, size: int):
+def assert_chunks_match_lines(data: bytes, machine: str, size: int, **kwargs):
     """The vectorised chunk reader must read every line exactly as the line-by-line reader."""
     slow = Interpreter(load_profile(machine))
     lineno = 0
-    for chunk in chunked(data, machine, size):
+    for chunk in chunked(data, machine, size, **kwargs):
         for i, raw in enumerate(chunk.lines):
             lineno += 1
             block = slow.feed(lineno, raw.decode("latin-1"))
@@ -179,13 +181,37 @@ def assert_chunks_match_lines(data: bytes, machine: str, size: int):
 
 @pytest.mark.parametrize("machine", ["ijk", "table-ac", "multiaxis-3dp-bc"])
 @pytest.mark.parametrize("size", [4096, 9, 1])
-def test_chunk_reader_agrees_with_the_line_reader(machine, size):
+@pytest.mark.parametrize("reader", ["numpy", "compiled", "numpy then compiled"])
+def test_chunk_reader_agrees_with_the_line_reader(machine, size, reader, monkeypatch):
+    """With either plain-line reader, and switching from the numpy one to the compiled one mid-program
+    (as a long pass-through does)."""
     text = EQUIVALENCE_PROGRAM
     if machine != "ijk":  # the same moves with this profile's rotary words (I J K would be an error)
         c, tilt = load_profile(machine).kinematics.orientation_letters
         for vector, angles in (("I0.6 J0 K0.8", f"{tilt}10 {c}20"), ("I0 J0 K1", f"{tilt}0 {c}0"), ("J1", f"{tilt}1")):
             text = text.replace(vector, angles)
-    assert_chunks_match_lines((text * 30).encode(), machine, size)
+    if reader == "numpy then compiled":
+        monkeypatch.setattr(modal, "COMPILED_AFTER_LINES", 5 * text.count("\n"))
+    assert_chunks_match_lines((text * 30).encode(), machine, size, compiled_reader=reader == "compiled")
+
+
+def test_a_long_program_switches_to_the_compiled_reader(monkeypatch):
+    """Read with numpy while short, compiled from ``COMPILED_AFTER_LINES`` lines on (and from the
+    start with ``compiled_reader``): the test above compares what each reads."""
+    from ncfix.nc.plain import PlainReader
+    from ncfix.nc.plain_jit import PlainReaderJit
+
+    monkeypatch.setattr(modal, "COMPILED_AFTER_LINES", 20)
+    lines = [b"G1 X1 Y2 Z3\n"] * 10
+    interp = Interpreter(load_profile("ijk"))
+    readers = []
+    for first in (1, 11, 21):
+        interp.feed_chunk(lines, first)
+        readers.append(type(interp._plain))
+    assert readers == [PlainReader, PlainReader, PlainReaderJit]
+    compiled = Interpreter(load_profile("ijk"), compiled_reader=True)
+    compiled.feed_chunk(lines, 1)
+    assert type(compiled._plain) is PlainReaderJit
 
 
 @pytest.mark.heavy
@@ -200,23 +226,28 @@ def test_chunk_reader_agrees_with_the_line_reader(machine, size):
 def test_chunk_reader_agrees_on_the_corpus(name, machine):
     data = corpus_path(*name.split("/")).read_bytes()
     assert_chunks_match_lines(data, machine, 4096)
+    assert_chunks_match_lines(data, machine, 4096, compiled_reader=True)
     assert_chunks_match_lines(data[:200_000], machine, 37)
 
 
-@pytest.mark.parametrize("name", ["multiaxis_3dp_motionplanning/model_1_Gcode.txt", "linuxcnc/boat-xyzac.ngc",
-                                  "linuxcnc/impeller-7bl-xyzac.ngc"])
+@pytest.mark.parametrize("name", ["multiaxis_3dp_motionplanning/model_1_Gcode.txt", "s3_deformfdm/ring_Gcode.txt",
+                                  "linuxcnc/boat-xyzac.ngc", "linuxcnc/impeller-7bl-xyzac.ngc"])
 def test_compiled_plain_reader_agrees_with_the_array_reader(name):
+    """Every line of each program, in the chunks a run reads: a pass-through reads with the numpy
+    reader, a check (and a long pass-through) with the compiled one."""
     from ncfix.nc.plain import PlainReader
     from ncfix.nc.plain_jit import PlainReaderJit
 
     letters = ("N", "G", "F", "E", "X", "Y", "Z", "C", "B", "A")
     lines = corpus_path(*name.split("/")).read_bytes().splitlines(keepends=True)
     extra = [b"G1 X1.2.3\n", b"X1-2\n", b"G1 X+-1\n", b"(c)\n", b"  \r\n", b"; x\n", b"G2 X1\n", b"N10 5 X1\n",
-             b"G01 X007 Y+3", b"G1 X1 X2\n", b"G1 X12345678901234567\n", b"g1 x1\n", b"X.5 Y-.25 Z1.\n"]
-    for chunk in (lines[:5000], extra):
+             b"G01 X007 Y+3", b"G1 X1 X2\n", b"G1 X12345678901234567\n", b"g1 x1\n", b"X.5 Y-.25 Z1.\n", b"",
+             b"X-0 Y-.0\n", b"X1", b"5 Y2\n", b"X1.23456789012345\n", b"X-123456789012345.\n", b"X1 Y\n", b"X\n",
+             b" (a) \n", b"(a)(b)\n", b"((a)\n", b"X1 (a)\n", b"G1X1Y2\n", b"X1.5E\n", b"X+\n", b""]
+    for chunk in [lines[i:i + CHUNK_LINES] for i in range(0, len(lines), CHUNK_LINES)] + [extra]:
         a, b = PlainReader(letters).parse(chunk), PlainReaderJit(letters).parse(chunk)
         assert (a.plain == b.plain).all() and (a.neutral == b.neutral).all()
-        assert np.array_equal(a.values[a.plain], b.values[b.plain], equal_nan=True)
+        assert np.array_equal(a.values[a.plain].view(np.int64), b.values[b.plain].view(np.int64))  # -0.0 too
 
 
 def test_ring_program_reads_as_its_first_layer_waypoints():

@@ -125,3 +125,30 @@ def test_the_frame_warning_spares_a_part_the_head_hits(tmp_path, gap, warned):
     frame = [w for w in report.warnings if "does not overlap the toolpath" in w]
     assert bool(frame) == warned
     assert bool(report.collisions) != warned
+
+
+class _Pipe(io.BytesIO):
+    """An input that cannot be read ahead (standard input from a pipe)."""
+
+    def seekable(self) -> bool:
+        return False
+
+
+def test_a_part_far_from_the_first_chunk_but_near_the_program_is_placed_right(tmp_path):
+    """The placement check judges the whole program's box when the input can be read ahead: a
+    part beside the program's later moves is not "too far from the toolpath" because the first
+    4,096 lines run elsewhere. From a pipe only the first chunk is known, and the same part is an
+    error (the limit docs/contract.md states)."""
+    from ncfix.pipeline import CHUNK_LINES
+
+    post = trimesh.creation.box(extents=(10.0, 10.0, 12.0))
+    post.apply_translation((600.0, 0.0, 6.0))  # in the later moves' way, 600 mm from the first ones
+    post.export(tmp_path / "post.stl")
+    first = b"G0 X0 Y0 Z10 I0 J0 K1\nG1 X1 F600\n" * (CHUNK_LINES // 2 + 8)
+    program = b"G90\n" + first + b"G0 X590 Y-20 Z10\nG1 X610 Y20\nG0 Z40\nM30\n"
+    options = {"head": str(SAMPLES / "deposition_head.stl"), "part": [str(tmp_path / "post.stl")],
+               "bead_radius": 0.0, "check": True}
+    report = ncfix.process(io.BytesIO(program), io.BytesIO(), **options)
+    assert not [w for w in report.warnings if "does not overlap the toolpath" in w]
+    with pytest.raises(GeometryError, match="away from the toolpath"):
+        ncfix.process(_Pipe(program), io.BytesIO(), **options)

@@ -584,3 +584,19 @@ def test_running_out_of_memory_anyway_is_exit_2(tmp_path, program, monkeypatch, 
     status, _, err = run_main([program, "-q"], capsysbinary)
     assert (status, err) == (2, "ncfix: error: out of memory (use a coarser --pitch, a smaller --window or "
                                 "smaller meshes)\n")
+
+
+def test_a_read_error_while_reading_a_chunk_names_the_input():
+    """The pipeline reads a chunk's lines in one call (``Input.take``): a failing disk part way
+    is still one line naming the input, and the lines before it arrive in order."""
+    from ncfix.fileio import Input
+
+    def failing():
+        yield b"G1 X1\n"
+        yield b"G1 X2\n"
+        raise OSError(errno.EIO, "Input/output error")
+
+    stream = Input(failing(), "part.nc")
+    assert stream.take(1) == [b"G1 X1\n"] and next(stream) == b"G1 X2\n"
+    with pytest.raises(NcfixError, match="cannot read 'part.nc': Input/output error"):
+        stream.take(4096)

@@ -31,6 +31,43 @@ def test_importing_the_command_line_does_not_import_torch(tmp_path):
     assert done.returncode == 0, done.stderr
 
 
+def test_a_pass_through_imports_no_numba_or_scipy(tmp_path):
+    """A run without --head needs no compiled kernel: it reads the program with the numpy reader
+    and computes no rotation, so numba and the scipy its compiler loads (about 0.5 s of start-up
+    together) are never imported; each kind of profile (tool vectors, rotary words, a dialect
+    chosen by --machine auto). The output is the input, byte for byte."""
+    (tmp_path / "ncfix.toml").write_text("[ncfix]\n")  # not samples/ncfix.toml (which names a head)
+    runs = [("bathtub_273.nc", "ijk"), ("bathtub_273_table_ac.nc", "table-ac"), ("bathtub_273_sinumerik.mpf", "auto")]
+    done = _run_python(f"""
+        import sys
+        from ncfix.cli import main
+        for name, machine in {runs!r}:
+            assert main([{str(SAMPLES)!r} + "/" + name, "--machine", machine, "-o", name]) == 0
+        loaded = sorted(m for m in sys.modules if m.partition(".")[0] in ("numba", "scipy", "llvmlite"))
+        assert not loaded, f"a pass-through imported {{loaded[:5]}}"
+        """, tmp_path)
+    assert done.returncode == 0, done.stdout + done.stderr
+    for name, _ in runs:
+        assert (tmp_path / name).read_bytes() == (SAMPLES / name).read_bytes()
+
+
+def test_a_file_longer_than_the_numpy_reader_reads_loads_the_compiled_one_at_once(tmp_path):
+    """A regular file larger than ``COMPILED_AFTER_LINES`` lines of ``LINE_BYTES`` is read with the
+    compiled reader from its first line (numba paid once, not after the numpy reader's share):
+    here every file counts as long. The output is still the input."""
+    (tmp_path / "ncfix.toml").write_text("[ncfix]\n")
+    done = _run_python(f"""
+        import sys
+        import ncfix.pipeline
+        from ncfix.cli import main
+        ncfix.pipeline.LINE_BYTES = 0
+        assert main([{str(SAMPLES / "bathtub_273.nc")!r}, "--machine", "ijk", "-q", "-o", "out.nc"]) == 0
+        assert "numba" in sys.modules, "a long file was not read with the compiled reader"
+        """, tmp_path)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert (tmp_path / "out.nc").read_bytes() == (SAMPLES / "bathtub_273.nc").read_bytes()
+
+
 def _no_torch_run(tmp_path: Path, runs: str) -> None:
     """``runs`` (lines calling ``main(common + [...])``) in a fresh interpreter on deposit_wall.nc
     with the sample head and a part below the wall (gridded and looked up, never hit)."""
@@ -82,12 +119,13 @@ def test_a_cpu_fix_never_imports_torch(tmp_path):
 HEAVY = ("trimesh", "networkx", "torch", "scipy.spatial", "scipy.sparse", "scipy.optimize")
 
 
-def _warm_check(tmp_path: Path, runs: str) -> None:
+def _warm_check(tmp_path: Path, runs: str, heavy_modules: tuple[str, ...] = HEAVY) -> None:
     """``runs`` (``main([...])`` calls) twice, each time in a fresh interpreter with one cache
-    folder: the first fills it, the second must import none of ``HEAVY``."""
+    folder: the first fills it, the second must import none of ``heavy_modules``."""
     env = {**os.environ, "PYTHONPATH": str(REPO), "NCFIX_CACHE": str(tmp_path / "cache")}
     code = "import sys\nfrom ncfix.cli import main\n" + textwrap.dedent(runs) + textwrap.dedent(f"""
-        heavy = sorted(m for m in sys.modules if m in {HEAVY!r} or m.startswith(tuple(h + "." for h in {HEAVY!r})))
+        heavy = sorted(m for m in sys.modules
+                       if m in {heavy_modules!r} or m.startswith(tuple(h + "." for h in {heavy_modules!r})))
         print("HEAVY", heavy)
         """)
     for warm in (False, True):
@@ -114,6 +152,19 @@ def test_a_warm_cache_check_imports_no_trimesh_scipy_spatial_or_torch(tmp_path):
         assert main([{str(SAMPLES / "deposit_wall.nc")!r}, "--machine", "ijk", "--head", head, "--standoff", "6",
                      "--bead-radius", "1", "--pitch", "0.5", "--check", "-q", "-o", "beads.nc"]) in (0, 1)
         """)
+
+
+def test_a_warm_cache_fix_imports_no_trimesh_or_torch(tmp_path):
+    """A fix (the EPA strategy: the head's hulls and the part's CoACD pieces from the cache) of a
+    wall across the path: no trimesh (nor networkx), no torch. scipy's k-d trees are allowed: the
+    graph fallback that frees this wall searches with them."""
+    (tmp_path / "ncfix.toml").write_text("[ncfix]\n")
+    _warm_check(tmp_path, f"""
+        assert main([{str(REPO / "tests" / "golden" / "fix_ijk" / "input.nc")!r}, "--machine", "ijk",
+                     "--head", {str(SAMPLES / "deposition_head.stl")!r},
+                     "--part", {str(REPO / "tests" / "golden" / "meshes" / "wall_x.stl")!r}, "--bead-radius", "0",
+                     "-q", "-o", "fixed.nc"]) == 0
+        """, heavy_modules=("trimesh", "networkx", "torch"))
 
 
 @pytest.mark.heavy

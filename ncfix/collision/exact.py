@@ -23,7 +23,6 @@ from numba import njit
 
 from ncfix import cache
 from ncfix.collision.near import _winding
-from ncfix.geometry.distance import winding_numbers
 from ncfix.geometry.meshdata import Mesh, as_mesh, component_labels
 
 if TYPE_CHECKING:
@@ -188,13 +187,13 @@ class ExactParts:
         body of the head inside the part (one vertex of each body, by its winding number with
         respect to the whole other mesh; a vertex outside the other's box is outside it)."""
         local = in_box((part.probes - c) @ r, self._head_lo, self._head_hi)
-        if len(local) and (winding_numbers(local, self._head_triangles) > 0.5).any():
+        if len(local) and (_windings(np.ascontiguousarray(local), self._head_triangles) > 0.5).any():
             return True
         if not part.closed:
             return False
         lo, hi = part.bounds
         world = in_box(c + self._head_probes @ r.T, lo, hi)
-        return bool(len(world) and (winding_numbers(world, part.triangles) > 0.5).any())
+        return bool(len(world) and (_windings(np.ascontiguousarray(world), part.triangles) > 0.5).any())
 
     def _depth(self, part: ExactPart, c: np.ndarray, r: np.ndarray) -> float:
         """Deepest head vertex inside the part / part vertex inside the head (mm, >= 0)."""

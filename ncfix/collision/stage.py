@@ -115,30 +115,35 @@ class MotionRows:
 
 
 class PlacementCheck:
-    """The parts' placement check (wrong frame or units), on the toolpath box of the first chunk
-    that moves: a streaming filter does not know the whole program's box. A part too far to
-    reach is an error there and then; a part that only misses the box is a warning, given at the
-    end unless some block hit the part (the head reaches it, so it is where the program works:
-    a wall or fixture beside the path). The box is grown by where the material lies (the beads
-    reach ``bead_drop_mm + bead_radius_mm`` from P) and a pitch, the checker's resolution: a
-    platform that the first layer is printed on touches it."""
+    """The parts' placement check (wrong frame or units), on the program's box: the whole
+    program's (its points and tips, ``pipeline.program_box``) when the input could be read ahead,
+    else the first chunk that moves (a pipe: a streaming filter does not know the whole program
+    yet). A part too far to reach is an error there and then; a part that only misses the box is
+    a warning, given at the end unless some block hit the part (the head reaches it, so it is
+    where the program works: a wall or fixture beside the path). The box is grown by where the
+    material lies (the beads reach ``bead_drop_mm + bead_radius_mm`` from P) and a pitch, the
+    checker's resolution: a platform that the first layer is printed on touches it."""
 
-    def __init__(self, parts: Iterable[LoadedMesh]) -> None:
+    def __init__(self, parts: Iterable[LoadedMesh], program_box: np.ndarray | None = None) -> None:
         self.parts = list(parts)
+        self.program_box = program_box  # (2, 3) mm, or None: the first moving chunk's
         self.pending: list[tuple[str, str]] = []  # (the checker's name of the part, warning)
 
     def push(self, path: PathChecker, motion: MotionRows, chunk, rows) -> None:
         if not self.parts or not len(rows):
             return
-        P, _, _ = path.forward(path.normalise(chunk.words[rows]), motion.tcp(chunk, rows))
-        P = P[np.isfinite(P).all(axis=1)]
-        if len(P) == 0:
-            return
+        if self.program_box is not None:
+            lo, hi = self.program_box
+        else:
+            P, _, _ = path.forward(path.normalise(chunk.words[rows]), motion.tcp(chunk, rows))
+            P = P[np.isfinite(P).all(axis=1)]
+            if len(P) == 0:
+                return
+            lo, hi = P.min(axis=0), P.max(axis=0)
         ck = path.checker
         grow = ck.pitch_mm + (ck.bead_drop_mm + ck.bead_radius_mm if ck.bead_radius_mm > 0 else 0.0)
         for part, body in zip(self.parts, ck.parts, strict=True):  # both in load_parts' order
-            self.pending += [(body.name, w) for w in check_part_overlaps(part, P.min(axis=0) - grow,
-                                                                        P.max(axis=0) + grow)]
+            self.pending += [(body.name, w) for w in check_part_overlaps(part, lo - grow, hi + grow)]
         self.parts = []
 
     def report_into(self, report) -> None:
@@ -195,8 +200,8 @@ class CheckStage:
     """Pipeline stage: checks every motion block (end pose and sweep) and fills the report."""
 
     def __init__(self, checker: Checker, profile: Profile, options: Options, report: Report,
-                 placed_parts: Iterable[LoadedMesh] = ()) -> None:
-        self.placement = PlacementCheck(placed_parts)
+                 placed_parts: Iterable[LoadedMesh] = (), program_box: np.ndarray | None = None) -> None:
+        self.placement = PlacementCheck(placed_parts, program_box)
         self.checker = checker
         self.path = PathChecker(checker, profile, options.standoff, options.pitch)
         self.motion = MotionRows(self.path, profile, options)

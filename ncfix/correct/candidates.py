@@ -9,11 +9,11 @@ The grid is a Fibonacci lattice: near-uniform, deterministic, any size.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
 from numba import njit
-from scipy.spatial import cKDTree
 
 # Two dot products of unit vectors closer than this may order differently in another float
 # evaluation (each carries at most a few units in the last place, about 1e-15): ``nearest``
@@ -42,7 +42,14 @@ class SphereGrid:
         self.resolution_deg = float(resolution_deg)
         count = int(math.ceil(4.0 * math.pi / math.radians(resolution_deg) ** 2))
         self.points = fibonacci_sphere(count)
-        self.tree = cKDTree(self.points)
+
+    @functools.cached_property
+    def tree(self):
+        """A k-d tree of the points, built on first use (the EPA strategy holds a graph fallback that
+        may never search; importing scipy.spatial takes 0.1 s)."""
+        from scipy.spatial import cKDTree
+
+        return cKDTree(self.points)
 
     def cap(self, centre: np.ndarray, radius_deg: float) -> np.ndarray:
         """Grid indices (sorted) within ``radius_deg`` of the unit vector ``centre``."""

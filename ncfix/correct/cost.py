@@ -73,7 +73,8 @@ def path_cost(programmed: np.ndarray, output: np.ndarray, max_step_deg: float,
 def program_vectors(data: bytes, profile, source: str = "<program>") -> tuple[np.ndarray, np.ndarray]:
     """(lines, N): the 1-based input line and the unit tool vector of every motion block of a
     program whose axes are all known, as ncfix reads it with ``profile`` (a ``Profile``)."""
-    chunk = Interpreter(profile, source).feed_chunk(data.splitlines(keepends=True), 1)
+    # the whole program as one chunk: the compiled reader's memory is the program's, not its words'
+    chunk = Interpreter(profile, source, compiled_reader=True).feed_chunk(data.splitlines(keepends=True), 1)
     found = [poses for _, poses in program_poses([chunk], PoseMap(profile))]
     if not found:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 3))

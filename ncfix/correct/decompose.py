@@ -16,10 +16,15 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import trimesh
 
 from ncfix import cache
+from ncfix.geometry.meshdata import Mesh
+
+if TYPE_CHECKING:
+    import trimesh
 
 # CoACD's own seed; fixed so that a decomposition is reproducible bit for bit.
 _SEED = 0
@@ -30,19 +35,20 @@ _ARRAYS = ("vertices", "faces", "vertex_offsets", "face_offsets")
 class Decomposition:
     """Convex pieces of one part.
 
-    pieces : convex hulls (trimesh.Trimesh), workpiece mm, the part's frame
+    pieces : convex hulls, workpiece mm, the part's frame (``Mesh``: trimesh is imported only to
+        decompose, not to read the pieces from the cache)
     seconds : wall time spent here (decomposing, or ~0 when read from the cache)
     cached : True when the pieces came from the cache
     key : hex sha256 naming the cache file
     """
 
-    pieces: list[trimesh.Trimesh]
+    pieces: list[Mesh]
     seconds: float
     cached: bool
     key: str
 
 
-def cache_key(mesh: trimesh.Trimesh, threshold: float) -> str:
+def cache_key(mesh: trimesh.Trimesh | Mesh, threshold: float) -> str:
     """sha256 of the vertex (float64) and face (int64) arrays, the parameters and CoACD's version.
     The seed is fixed, so the same key always means the same hulls (``coacd-KEY.npz``, ``ncfix.cache``;
     a file that cannot be read is recomputed and overwritten)."""
@@ -55,9 +61,10 @@ def cache_key(mesh: trimesh.Trimesh, threshold: float) -> str:
 
 
 def decompose(
-    mesh: trimesh.Trimesh, *, threshold: float = 0.05, cache_dir: str | Path | None = None, name: str = "a part"
+    mesh: trimesh.Trimesh | Mesh, *, threshold: float = 0.05, cache_dir: str | Path | None = None,
+    name: str = "a part",
 ) -> Decomposition:
-    """Convex pieces of ``mesh`` (closed trimesh, workpiece mm), from the cache when present.
+    """Convex pieces of ``mesh`` (closed, workpiece mm), from the cache when present.
 
     threshold : CoACD's concavity threshold (smaller: more, tighter pieces)
     cache_dir : folder of the .npz files; None means ``ncfix.cache.cache_dir()``. A folder that
@@ -71,8 +78,9 @@ def decompose(
     return Decomposition(pieces=pieces, seconds=time.perf_counter() - start, cached=hit, key=key)
 
 
-def _run_coacd(mesh: trimesh.Trimesh, threshold: float) -> list[trimesh.Trimesh]:
+def _run_coacd(mesh: trimesh.Trimesh | Mesh, threshold: float) -> list[Mesh]:
     import coacd
+    import trimesh
 
     coacd.set_log_level("error")
     parts = coacd.run_coacd(
@@ -81,10 +89,11 @@ def _run_coacd(mesh: trimesh.Trimesh, threshold: float) -> list[trimesh.Trimesh]
         seed=_SEED,
     )
     # CoACD returns hulls already; re-hulling gives consistently wound, closed convex triangle sets.
-    return [trimesh.Trimesh(vertices, faces, process=False).convex_hull for vertices, faces in parts]
+    hulls = [trimesh.Trimesh(vertices, faces, process=False).convex_hull for vertices, faces in parts]
+    return [Mesh(hull.vertices, hull.faces) for hull in hulls]
 
 
-def _to_arrays(pieces: list[trimesh.Trimesh]) -> dict[str, np.ndarray]:
+def _to_arrays(pieces: list[Mesh]) -> dict[str, np.ndarray]:
     """All vertices and faces stacked, with offsets."""
     return {
         "vertices": np.concatenate([p.vertices for p in pieces]).astype(np.float64),
@@ -94,7 +103,7 @@ def _to_arrays(pieces: list[trimesh.Trimesh]) -> dict[str, np.ndarray]:
     }
 
 
-def _from_arrays(arrays: dict[str, np.ndarray]) -> list[trimesh.Trimesh] | None:
+def _from_arrays(arrays: dict[str, np.ndarray]) -> list[Mesh] | None:
     """The pieces, or None when the arrays do not make valid pieces (then they are recomputed)."""
     vertices = np.asarray(arrays["vertices"], dtype=np.float64)
     faces = np.asarray(arrays["faces"], dtype=np.int64)
@@ -107,5 +116,5 @@ def _from_arrays(arrays: dict[str, np.ndarray]) -> list[trimesh.Trimesh] | None:
         v, f = vertices[vo[i] : vo[i + 1]], faces[fo[i] : fo[i + 1]]
         if len(v) < 4 or len(f) < 4 or f.min() < 0 or f.max() >= len(v) or not np.isfinite(v).all():
             return None
-        pieces.append(trimesh.Trimesh(v, f, process=False))
+        pieces.append(Mesh(v, f))
     return pieces

@@ -15,16 +15,20 @@ from dataclasses import dataclass, field
 from itertools import islice
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 import coal
 import numpy as np
-import trimesh
 from numba import njit
-from scipy.spatial import HalfspaceIntersection
 
+from ncfix import cache
 from ncfix.collision.near import tri_closest
 from ncfix.correct.decompose import Decomposition, decompose
 from ncfix.geometry.frames import angle_between_deg, axis_rotation
-from ncfix.geometry.meshdata import Mesh, as_trimesh
+from ncfix.geometry.meshdata import Mesh, as_mesh, as_trimesh
+
+if TYPE_CHECKING:
+    import trimesh
 
 RotationOf = Callable[[np.ndarray], np.ndarray]
 IsFree = Callable[[np.ndarray], np.ndarray]
@@ -76,8 +80,9 @@ class TiltResult:
 class EpaModel:
     """Convex-hull model of a head and parts for GJK/EPA extraction vectors and tilts.
 
-    head_mesh : closed trimesh in the head frame (tip at the origin, axis +Z)
-    parts : (name, closed trimesh in workpiece mm) pairs, decomposed with CoACD (cached)
+    head_mesh : closed mesh (``Mesh`` or trimesh) in the head frame (tip at the origin, axis +Z);
+        its hulls are cached (``_head_hulls``)
+    parts : (name, closed mesh in workpiece mm) pairs, decomposed with CoACD (cached)
     threshold, cache_dir : passed to ``decompose``
     bead_radius_mm : radius of the bead spheres given to ``extraction_vector``/``tilt``
     tip_allowance_mm : the head below this height (head frame) is not tested against beads
@@ -93,19 +98,19 @@ class EpaModel:
         bead_radius_mm: float = 1.0,
         tip_allowance_mm: float = 1.0,
     ):
-        head_mesh = as_trimesh(head_mesh)
-        hull = head_mesh.convex_hull
-        self._head_points = np.asarray(hull.vertices, dtype=np.float64)
+        hulls = _head_hulls(as_mesh(head_mesh), float(tip_allowance_mm), cache_dir)
+        hull = Mesh(hulls["hull_vertices"], hulls["hull_faces"])
+        self._head_points = hull.vertices
         # No head point is farther from the tip: callers gather the beads within this (plus a radius).
         self.head_reach_mm = float(np.linalg.norm(self._head_points, axis=1).max())
-        self._head_normals = np.ascontiguousarray(hull.face_normals, dtype=np.float64)
+        self._head_normals = np.ascontiguousarray(hulls["hull_normals"], dtype=np.float64)
         self._head_offsets = np.einsum("ij,ij->i", self._head_normals, hull.triangles[:, 0])
         self._head_centre = self._head_points.mean(axis=0)  # the broad phase's view point
         self._head = _convex(hull)
-        bead_hull = _clip_hull(hull, float(tip_allowance_mm))
+        bead_hull = Mesh(hulls["bead_vertices"], hulls["bead_faces"])
         self._bead_head = _convex(bead_hull)
         self._bead_lo, self._bead_hi = np.asarray(bead_hull.bounds, dtype=np.float64)
-        self._bead_normals = np.asarray(bead_hull.face_normals, dtype=np.float64)
+        self._bead_normals = np.asarray(hulls["bead_normals"], dtype=np.float64)
         self._bead_offsets = np.einsum("ij,ij->i", self._bead_normals, bead_hull.triangles[:, 0])
         self._bead_triangles = np.ascontiguousarray(bead_hull.triangles, dtype=np.float64)
         self.bead_radius_mm = float(bead_radius_mm)
@@ -118,7 +123,7 @@ class EpaModel:
         self.cached = True
         self.decompositions: list[tuple[str, Decomposition]] = []  # per part, as ``decompose`` gave it
         for name, mesh in parts:
-            result = decompose(as_trimesh(mesh), threshold=threshold, cache_dir=cache_dir, name=name)
+            result = decompose(as_mesh(mesh), threshold=threshold, cache_dir=cache_dir, name=name)
             self.decompositions.append((name, result))
             self.decompose_seconds += result.seconds
             self.cached &= result.cached
@@ -327,8 +332,8 @@ class EpaModel:
 # ---- helpers ------------------------------------------------------------------------------
 
 
-def _convex(mesh: trimesh.Trimesh) -> coal.ConvexBase:
-    """A coal convex shape from a convex trimesh (its points and triangles), for any mesh.
+def _convex(mesh: Mesh) -> coal.ConvexBase:
+    """A coal convex shape from a convex mesh (its points and triangles), for any mesh.
 
     coal keeps each vertex's neighbours (its GJK support search climbs along them) in lists of
     at most ``_COAL_MAX_NEIGHBOURS``, and refuses a shape with a vertex of more. The triangles
@@ -391,6 +396,9 @@ def _outer_polytope(points: np.ndarray) -> np.ndarray:
     points' support in that direction (so it holds every point), with the six axis planes; the
     polytope is their intersection. The planes around a vertex of many faces (a fine cone's apex)
     become a few dozen."""
+    import trimesh
+    from scipy.spatial import HalfspaceIntersection
+
     points = np.asarray(points, dtype=np.float64)
     hull = trimesh.convex.convex_hull(points)
     normals, areas = np.asarray(hull.face_normals), np.asarray(hull.area_faces)
@@ -410,8 +418,43 @@ def _outer_polytope(points: np.ndarray) -> np.ndarray:
     return np.asarray(HalfspaceIntersection(planes, centre).intersections, dtype=np.float64)
 
 
+# The code the head's hulls come from (part of their cache key).
+_HULL_SOURCES = ("ncfix.correct.epa", "ncfix.geometry.meshdata")
+_HULL_ARRAYS = ("hull_vertices", "hull_faces", "hull_normals", "bead_vertices", "bead_faces", "bead_normals")
+
+
+def _head_hulls(head: Mesh, tip_allowance_mm: float, cache_dir: str | Path | None) -> dict[str, np.ndarray]:
+    """The head's convex hull and that hull cut at the tip allowance (``_clip_hull``): vertices,
+    faces and face normals as trimesh computes them, read from the cache when this head was
+    hulled at this allowance before (a warm fix then does not import trimesh and scipy's qhull)."""
+    key = cache.make_key("hull", head.vertices, head.faces, tip_allowance_mm, cache.fingerprint(*_HULL_SOURCES),
+                         {package: cache.version(package) for package in ("numpy", "scipy", "trimesh")})
+
+    def build() -> dict[str, np.ndarray]:
+        hull = as_trimesh(head).convex_hull
+        bead = _clip_hull(hull, tip_allowance_mm)
+        return {"hull_vertices": hull.vertices, "hull_faces": hull.faces, "hull_normals": hull.face_normals,
+                "bead_vertices": bead.vertices, "bead_faces": bead.faces, "bead_normals": bead.face_normals}
+
+    def from_arrays(a: dict[str, np.ndarray]) -> dict[str, np.ndarray] | None:
+        for name in _HULL_ARRAYS:
+            kind = np.int64 if name.endswith("faces") else np.float64
+            if a[name].dtype != kind or a[name].ndim != 2 or a[name].shape[1] != 3:
+                return None
+        if len(a["hull_faces"]) != len(a["hull_normals"]) or len(a["bead_faces"]) != len(a["bead_normals"]):
+            return None
+        return a
+
+    def to_arrays(a: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        return {name: np.asarray(a[name]) for name in _HULL_ARRAYS}
+
+    hulls, _ = cache.cached("hull", key, _HULL_ARRAYS, build, to_arrays, from_arrays, cache_dir)
+    return hulls
+
+
 def _clip_hull(hull: trimesh.Trimesh, height_mm: float) -> trimesh.Trimesh:
     """The convex hull cut by the plane z = height_mm, keeping the part above (still convex)."""
+    import trimesh
     v = np.asarray(hull.vertices, dtype=np.float64)
     edges = np.asarray(hull.edges_unique)
     z0, z1 = v[edges[:, 0], 2] - height_mm, v[edges[:, 1], 2] - height_mm

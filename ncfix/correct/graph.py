@@ -15,7 +15,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.spatial import cKDTree
 
 from ncfix.collision.split import map_runs
 
@@ -107,6 +106,8 @@ class LayeredGraph:
             sources = self.candidates[level - 1][src]
             if turns is not None:
                 sources = sources @ np.asarray(turns[level], dtype=np.float64).T
+            from scipy.spatial import cKDTree  # 0.1 s to import: only a graph search pays
+
             tree = cKDTree(sources)
             dist, idx = tree.query(self.candidates[level], k=width, distance_upper_bound=chords[level])
             dist, idx = dist.reshape(k, width), idx.reshape(k, width)

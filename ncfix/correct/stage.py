@@ -229,13 +229,14 @@ class CorrectStage:
     REUSE_DETECTION = True
 
     def __init__(self, checker: Checker, profile: Profile, options: Options, report: Report,
-                 strategy: Strategy, placed_parts: Iterable[LoadedMesh] = ()) -> None:
+                 strategy: Strategy, placed_parts: Iterable[LoadedMesh] = (),
+                 program_box: np.ndarray | None = None) -> None:
         self.checker = checker
         self.profile = profile
         self.options = options
         self.report = report
         self.strategy = strategy
-        self.placement = PlacementCheck(placed_parts)
+        self.placement = PlacementCheck(placed_parts, program_box)
         self.path = PathChecker(checker, profile, options.standoff, options.pitch)
         self.motion = MotionRows(self.path, profile, options)
         self.window = int(options.window)

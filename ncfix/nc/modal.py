@@ -20,7 +20,7 @@ from ncfix.nc.chunk import Chunk
 from ncfix.nc.dialects import DIALECTS
 from ncfix.nc.lexer import WORD_RE, code_of, parse_number
 from ncfix.nc.orientation import BlockWords, foreign_word_error, owned_words, vocabulary
-from ncfix.nc.plain_jit import PlainReaderJit
+from ncfix.nc.plain import PlainReader
 from ncfix.profiles import Profile
 
 NAN = math.nan
@@ -32,6 +32,11 @@ _MIN_RUN = 8  # shorter runs of plain lines are cheaper one by one than as array
 # A position farther than this from the origin (mm) is a typo or a unit mistake, not a machine's
 # travel: `Y99999999999999999999` would otherwise be checked pitch by pitch (10^20 samples).
 TRAVEL_LIMIT_MM = 1.0e6
+# Lines read with the numpy plain reader before a run that has not loaded numba switches to the
+# compiled one: numba's start (import, compiler target, cached code: about 0.5 s of CPU) costs
+# about what the numpy reader spends on this many lines (2-3 µs each, the compiled one 0.2-0.3).
+# A short program never pays for numba; a long one pays at most about that much twice.
+COMPILED_AFTER_LINES = 200_000
 # Words of an arc: centre offsets and radius (Siemens CR=; Klartext CR is a block keyword, no value).
 _ARC_WORDS = {"I", "J", "K", "R", "CR"}
 # Non-finite values as float() would read them: `Xnan`, `Kinf`, `Xinfinity` (the lexer sees one
@@ -60,9 +65,15 @@ def _code_key(code: str) -> tuple[str, float | str]:
 
 class Interpreter:
     """Feed it lines in order; it returns a :class:`Block` per line (the modal state it tracks:
-    the module docstring)."""
+    the module docstring).
 
-    def __init__(self, profile: Profile, source: str = "<stdin>", deposit_codes: tuple[str, str] | None = None):
+    ``compiled_reader``: read plain lines with the compiled reader (ncfix.nc.plain_jit) from the
+    first chunk, for a run that loads numba anyway (a check); otherwise with the numpy reader
+    until ``COMPILED_AFTER_LINES`` lines, so a pass-through of a short program never loads numba.
+    Both readers give the same blocks (a test runs both over the corpus)."""
+
+    def __init__(self, profile: Profile, source: str = "<stdin>", deposit_codes: tuple[str, str] | None = None,
+                 compiled_reader: bool = False):
         self.profile = profile
         self.source = source
         kin = profile.kinematics
@@ -109,7 +120,10 @@ class Interpreter:
         self._plain_cols = {letter: i for i, letter in enumerate(plain_letters)}
         self._plain_axis_cols = [self._plain_cols[letter] for letter in kin.letters]
         self._fast_ok = dialect.plain_words and all(len(letter) == 1 for letter in kin.letters)
-        self._plain = PlainReaderJit(plain_letters) if self._fast_ok else None
+        self._plain = PlainReader(plain_letters) if self._fast_ok else None
+        self._plain_compiled = False
+        self._lines_read = 0
+        self._numpy_lines = 0 if compiled_reader else COMPILED_AFTER_LINES  # read before the compiled reader
         # Orientation words of other profiles (ncfix.nc.orientation): an error, never ignored. Plain
         # lines hold only this profile's letters, so only the full reader looks for them.
         self._foreign = BlockWords(vocabulary() - owned_words(profile))
@@ -127,7 +141,8 @@ class Interpreter:
         n = len(lines)
         if n == 0:
             return chunk
-        parse = self._plain.parse(lines) if self._fast_ok else None
+        parse = self._plain_reader().parse(lines) if self._fast_ok else None
+        self._lines_read += n
         if parse is None:
             simple = np.zeros(n, dtype=bool)
         else:
@@ -143,6 +158,15 @@ class Interpreter:
                 self._store(chunk, stop, self._feed(first_lineno + stop, lines[stop].decode("latin-1")))
             start = stop + 1
         return chunk
+
+    def _plain_reader(self) -> PlainReader:
+        """The numpy reader, or the compiled one once numba is paid for or worth paying for."""
+        if not self._plain_compiled and self._lines_read >= self._numpy_lines:
+            from ncfix.nc.plain_jit import PlainReaderJit  # numba loads here, not with the module
+
+            self._plain = PlainReaderJit(self._plain.letters)
+            self._plain_compiled = True
+        return self._plain
 
     def _store(self, chunk: Chunk, i: int, block: Block) -> None:
         if block.motion is not None:

@@ -34,8 +34,10 @@ class PlainParse:
 class PlainReader:
     """Reads the plain lines of a chunk with array operations; see the module docstring.
 
-    Dense passes over the characters are comparisons and ``flatnonzero`` (cheap); everything
-    else works on the sparse positions of letters, dots, signs and run boundaries.
+    Each byte gets a class from one table lookup; a line with a byte of no plain class is either
+    neutral (its stripped text is tested: such lines are few) or left to the full reader. The
+    values are read on a (bytes, words) array of the bytes after each letter, as wide as the
+    longest value, so past a few dense passes over the bytes the cost follows the words.
     """
 
     def __init__(self, letters: tuple[str, ...]):
@@ -44,97 +46,70 @@ class PlainReader:
         for i, letter in enumerate(letters):
             self.column[ord(letter)] = i
         self.g_column = letters.index("G")
+        self.kind = _KINDS.copy()
+        self.kind[self.column >= 0] = _LETTER
 
     def parse(self, lines: list[bytes]) -> PlainParse:
         n = len(lines)
         ncol = len(self.letters)
         lens = np.fromiter(map(len, lines), dtype=np.int64, count=n)
+        ends = np.cumsum(lens)
+        starts = ends - lens
         data = np.frombuffer(b"".join(lines), dtype=np.uint8)
-        size = len(data)
-        starts = np.zeros(n, dtype=np.int64)
-        np.cumsum(lens[:-1], out=starts[1:])
-        ends = starts + lens
+        kind = self.kind[data]
 
-        def line_of(positions: np.ndarray) -> np.ndarray:
-            return np.searchsorted(starts, positions, side="right") - 1
+        # -- lines with a byte no plain line holds: neutral (`; …`, one `( … )`) or the full reader's --
+        other = _per_line(kind == _OTHER, starts, lens) > 0
+        blank = _per_line(kind != _BLANK, starts, lens) == 0
+        neutral = blank.copy()
+        for i in np.flatnonzero(other).tolist():
+            text = lines[i].strip(b" \t\r\n")
+            neutral[i] = text[0] == 59 or (text[0] == 40 and text[-1] == 41 and text.count(b"(") == 1
+                                           and text.count(b")") == 1)
+        candidate = ~(other | blank)
 
-        def count_per_line(positions: np.ndarray) -> np.ndarray:
-            return np.bincount(line_of(positions), minlength=n)
-
-        is_digit = (data >= 48) & (data <= 57)
-        is_upper = (data >= 65) & (data <= 90)
-        blank = (data == 32) | (data == 9)
-        eol = (data == 10) | (data == 13)
-        is_dot = data == 46
-        is_sign = (data == 43) | (data == 45)
-        is_num = is_digit | is_dot | is_sign
-
-        # -- neutral lines: blank, `; …`, or a single `( … )` ----------------------------------
-        solid = np.flatnonzero(~(blank | eol))
-        first_i = np.searchsorted(solid, starts)
-        last_i = np.searchsorted(solid, ends) - 1
-        has_solid = first_i <= last_i
-        solid_ch = np.append(data[solid], 0)  # a sentinel for lines with nothing solid
-        first_ch = np.where(has_solid, solid_ch[np.minimum(first_i, len(solid))], 0)
-        last_ch = np.where(has_solid, solid_ch[np.where(has_solid, last_i, len(solid))], 0)
-        opens = count_per_line(np.flatnonzero(data == 40))
-        closes = count_per_line(np.flatnonzero(data == 41))
-        semis = count_per_line(np.flatnonzero(data == 59))
-        neutral = ~has_solid | (first_ch == 59) | ((first_ch == 40) & (last_ch == 41) & (opens == 1) & (closes == 1))
-
-        # -- plain lines: blanks, numbers and the profile's letters, nothing else ----------------
-        others = np.flatnonzero(~(is_num | is_upper | blank | eol))
-        bad = (count_per_line(others) > 0) | (semis > 0)
-        letter_pos = np.flatnonzero(is_upper)
+        # -- the words of the other lines: a letter of the profile, then its number ------------------
+        numeric = (kind >= _DIGIT) & (kind <= _SIGN)
+        letter_pos = np.flatnonzero(kind == _LETTER)
+        tok_line = np.searchsorted(ends, letter_pos, side="right")
+        keep = candidate[tok_line]
+        letter_pos, tok_line = letter_pos[keep], tok_line[keep]
         col = self.column[data[letter_pos]]
-        bad |= count_per_line(letter_pos[col < 0]) > 0
-        tok_line = line_of(letter_pos)
-        keep = ~neutral[tok_line] & (col >= 0)
-        letter_pos, tok_line, col = letter_pos[keep], tok_line[keep], col[keep]
-        ntok = len(letter_pos)
-
-        # runs of number characters; each must start right after a letter (its word)
-        edge = np.flatnonzero(is_num[1:] != is_num[:-1]) + 1
-        run_start = np.concatenate(([0] if size and is_num[0] else [], edge[is_num[edge]])).astype(np.int64)
-        run_end = np.concatenate((edge[~is_num[edge]], [size] if size and is_num[-1] else [])).astype(np.int64)
-        orphan = run_start[(run_start == 0) | ~is_upper[np.maximum(run_start - 1, 0)]]
-        bad |= count_per_line(orphan) > 0
+        stops = np.append(np.flatnonzero(~numeric), len(data))  # where a number ends
         v_start = letter_pos + 1
-        run_start_s = np.append(run_start, size + 1)  # sentinels: no run starts there
-        run_end_s = np.append(run_end, size + 1)
-        k = np.searchsorted(run_start_s, v_start)
-        has_value = run_start_s[k] == v_start
-        v_end = np.where(has_value, run_end_s[k], v_start)
-        bad |= np.bincount(tok_line[~has_value], minlength=n) > 0
+        length = np.minimum(stops[np.searchsorted(stops, v_start)], ends[tok_line]) - v_start
+        # A number that does not follow a letter (`N10 5`): its bytes are in no word's value.
+        bad = np.zeros(n, dtype=bool)
+        bad[candidate] = (_per_line(numeric, starts, lens)[candidate]
+                          != np.bincount(tok_line, weights=length, minlength=n)[candidate])
 
-        # a value: one optional sign in front, at most one dot, 1..MAX_DIGITS digits
-        digit_pos = np.flatnonzero(is_digit)
-        dot_pos = np.flatnonzero(is_dot)
-        sign_pos = np.flatnonzero(is_sign)
-        first_digit = np.searchsorted(digit_pos, v_start)
-        ndigits = np.searchsorted(digit_pos, v_end) - first_digit
-        first_dot = np.searchsorted(dot_pos, v_start)
-        ndots = np.searchsorted(dot_pos, v_end) - first_dot
-        inner_signs = np.searchsorted(sign_pos, v_end) - np.searchsorted(sign_pos, v_start + 1)
-        bad_tok = (ndots > 1) | (ndigits == 0) | (ndigits > MAX_DIGITS) | (inner_signs > 0)
+        # a value: one optional sign in front, at most one dot, 1..MAX_DIGITS digits; read on a
+        # (bytes, words) array of the bytes after each letter, as far as the longest valid value
+        width = min(int(length.max(initial=0)), MAX_VALUE_BYTES)
+        window = np.append(data, _PAD)[v_start + np.arange(width)[:, None]]
+        wkind = self.kind[window]
+        in_value = np.arange(width)[:, None] < length
+        is_digit = (wkind == _DIGIT) & in_value
+        is_dot = (wkind == _DOT) & in_value
+        ndigits = is_digit.sum(axis=0)
+        ndots = is_dot.sum(axis=0)
+        inner_signs = ((wkind[1:] == _SIGN) & in_value[1:]).any(axis=0)
+        bad_tok = ((length > MAX_VALUE_BYTES) | (ndots > 1) | (ndigits == 0) | (ndigits > MAX_DIGITS)
+                   | inner_signs)
         bad |= np.bincount(tok_line[bad_tok], minlength=n) > 0
 
-        # value = ± (integer of the digits) / 10**(digits after the dot), words that are well formed
-        good = np.flatnonzero(~bad_tok)
-        counts = ndigits[good]
-        seg_start = np.cumsum(counts) - counts
-        owner = np.repeat(np.arange(len(good)), counts)
-        used = first_digit[good][owner] + (np.arange(len(owner)) - seg_start[owner])
-        power = counts[owner] - (np.arange(len(owner)) - seg_start[owner]) - 1
-        terms = (data[digit_pos[used]] - 48.0) * _POW10[power]
-        value = np.zeros(ntok)
-        if len(good):
-            value[good] = np.add.reduceat(terms, seg_start)
-        dot_at = np.append(dot_pos, size)[first_dot]
-        frac = np.where(ndots == 1, np.searchsorted(digit_pos, v_end) - np.searchsorted(digit_pos, dot_at), 0)
-        value = value / _POW10[np.clip(frac, 0, MAX_DIGITS)]
-        sign_char = np.append(data, 0)[v_start]
-        value = np.where(sign_char == 45, -value, value)
+        # value = ± (integer of the digits) / 10**(digits after the dot): the integer is exact
+        # (below 2**53), then one correctly rounded division, as float() gives
+        digits = np.zeros(len(v_start))
+        frac = np.zeros(len(v_start), dtype=np.int64)
+        after_dot = np.zeros(len(v_start), dtype=bool)
+        for k in range(width):
+            digits = np.where(is_digit[k], digits * 10.0 + (window[k] - 48.0), digits)
+            after_dot |= is_dot[k]
+            frac += is_digit[k] & after_dot
+        value = digits / _POW10[np.clip(frac, 0, MAX_DIGITS)]
+        if width:
+            value = np.where(window[0] == 45, -value, value)
 
         cell = tok_line * ncol + col
         repeats = np.bincount(cell, minlength=n * ncol)[cell] > 1
@@ -144,8 +119,25 @@ class PlainReader:
         values[tok_line, col] = value
         g = values[:, self.g_column]
         bad |= ~np.isnan(g) & (g != 0.0) & (g != 1.0)
-        plain = ~bad & ~neutral
+        plain = candidate & ~bad
+        values[~plain] = np.nan
         return PlainParse(plain=plain, neutral=neutral, values=values)
 
 
+def _per_line(mask: np.ndarray, starts: np.ndarray, lens: np.ndarray) -> np.ndarray:
+    """How many bytes of each line ``mask`` marks (one pass; an empty line counts none)."""
+    counts = np.add.reduceat(np.append(mask, False), starts, dtype=np.int64)
+    counts[lens == 0] = 0
+    return counts
+
+
+# Byte classes: what may stand in a plain line (a letter of the profile is set per reader).
+_OTHER, _BLANK, _DIGIT, _DOT, _SIGN, _LETTER = range(6)
+_KINDS = np.full(256, _OTHER, dtype=np.uint8)
+_KINDS[[32, 9, 10, 13]] = _BLANK
+_KINDS[48:58] = _DIGIT
+_KINDS[46] = _DOT
+_KINDS[[43, 45]] = _SIGN
+MAX_VALUE_BYTES = MAX_DIGITS + 2  # a sign, the digits and a dot
+_PAD = np.full(MAX_VALUE_BYTES, 32, dtype=np.uint8)  # read past the last byte: not a number
 _POW10 = 10.0 ** np.arange(MAX_DIGITS + 1)
