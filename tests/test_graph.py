@@ -6,9 +6,11 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from numba import njit
 
 from ncfix.collision import split
-from ncfix.correct.candidates import SphereGrid, level_candidates
+from ncfix.correct import candidates
+from ncfix.correct.candidates import SphereGrid, level_candidates, nearest
 from ncfix.correct.graph import LIMIT_SLACK, LayeredGraph, _dense_min, cheapest_path
 from ncfix.geometry.frames import angle_between_deg, rotation_from_z
 
@@ -48,6 +50,46 @@ def obstacle_case(levels=40, blocked=range(15, 25), need_deg=8.0):
     for level in blocked:
         free[level] &= tilt_x[level] > need_deg  # only tilting toward +X by more than need_deg is free
     return programmed, cands, free
+
+
+def _levels(seed: int):
+    """(points, among) pairs as the graph's seeding meets them: a level's candidates (the grid's
+    cap about a programmed vector, and that vector), the coarse grid's cap against them, and the
+    level's candidates against a tested subset of them."""
+    rng = np.random.default_rng(seed)
+    fine, coarse = SphereGrid(1.0), SphereGrid(4.0)
+    programmed = rng.normal(size=(3, 3)) * [0.2, 0.2, 1.0]
+    programmed /= np.linalg.norm(programmed, axis=1, keepdims=True)
+    cands, valid = level_candidates(fine, programmed, 30.0)
+    for level, n0 in enumerate(programmed):
+        idx = np.flatnonzero(valid[level])
+        yield coarse.points[coarse.cap(n0, 30.0)], cands[level, idx]
+        tested = np.sort(rng.choice(idx, size=len(idx) // 16, replace=False))
+        yield cands[level, np.setdiff1d(idx, tested)], cands[level, tested]
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_nearest_candidate_is_the_one_the_dense_product_picks(seed, monkeypatch):
+    # On real levels, on random vectors, and where ties are exact (duplicates: the lowest index).
+    rng = np.random.default_rng(100 + seed)
+    random = rng.normal(size=(500, 3)), rng.normal(size=(300, 3))
+    random = tuple(v / np.linalg.norm(v, axis=1, keepdims=True) for v in random)
+    tied = random[1][rng.integers(0, 300, 200)]
+    cases = [*_levels(seed), random, (random[0], np.concatenate([tied, random[1], tied]))]
+    fallbacks = []
+    dense = candidates._nearest
+
+    def counted(points, among, margin):
+        out, clear = dense(points, among, margin)
+        fallbacks.append(not clear)
+        return out, clear
+
+    monkeypatch.setattr(candidates, "_nearest", counted)
+    for points, among in cases:
+        assert np.array_equal(nearest(points, among), np.argmax(points @ among.T, axis=1))
+    # Only the exact ties took the dense product (where its own products of equal vectors may
+    # differ in the last place: the loop could not have chosen as it does).
+    assert fallbacks[-1] and not any(fallbacks[:-1])
 
 
 def test_path_avoids_the_obstacle_with_small_steps_and_comes_back():
@@ -101,6 +143,47 @@ def test_wide_steps_search_every_edge_and_banned_edges_are_avoided():
     graph.ban(2, np.array([path[1]]), np.array([path[2]]))
     again = graph.cheapest(free)
     assert again is not None and (again[1], again[2]) != (path[1], path[2])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_search_resumed_from_the_last_one_finds_what_a_new_graph_finds(seed):
+    """``cheapest`` computes again only the levels from the first one whose allowed vertices,
+    penalty or bans changed: each search of a lazy loop (vertices let in or out, bans, penalties
+    changed, late levels first and early ones too) gives the path and the costs a graph built
+    anew and searched once gives, on nearest-neighbour levels (θ = 3°) and dense ones (θ = 8°)."""
+    rng = np.random.default_rng(seed)
+    levels = 12
+    programmed = np.tile([0.0, 0.0, 1.0], (levels, 1))
+    cands, valid = level_candidates(SphereGrid(1.0), programmed, 10.0)
+    limits = np.where(np.arange(levels) % 2 == 0, 3.0, 8.0)
+    graph = LayeredGraph(cands, valid, programmed, limits)
+    bans = []
+    allowed = valid & (rng.random(valid.shape) < 0.85)
+    allowed[:, 0] = True
+    penalty = np.zeros(valid.shape)
+    resumed, found = [], 0
+    for change in range(10):
+        level = int(rng.integers(1, levels)) if change % 3 else int(rng.integers(levels // 2, levels))
+        if change % 4 == 1:
+            ban = (level, rng.choice(np.flatnonzero(valid[level - 1]), 30), rng.choice(np.flatnonzero(valid[level]), 30))
+            bans.append(ban)
+            graph.ban(*ban)
+        elif change % 4 == 2:
+            penalty[level, rng.integers(0, valid.shape[1], 20)] += 1.0
+        elif change:
+            allowed[level] = valid[level] & (rng.random(valid.shape[1]) < 0.85)
+            allowed[level, 0] = True  # the programmed path stays (as the strategy keeps it)
+        path = graph.cheapest(allowed, penalty)
+        resumed.append(graph._last.start)
+        found += path is not None
+        fresh = LayeredGraph(cands, valid, programmed, limits)
+        for ban in bans:
+            fresh.ban(*ban)
+        assert np.array_equal(fresh.cheapest(allowed, penalty), path)
+        np.testing.assert_array_equal(fresh._last.costs, graph._last.costs)
+    assert resumed[0] == 1 and max(resumed) > levels // 2 and found > 5  # resumed, late as well as early
+    graph.cheapest(allowed)
+    assert graph._last.start == 1  # a search without a penalty after one with it: anew
 
 
 @pytest.mark.parametrize("threads", ["2", "5"])
@@ -345,6 +428,64 @@ def test_the_dense_levels_pick_what_every_pair_says(seed):
     found = np.isfinite(want)
     assert np.all(every[found, pick[found]] <= want[found] + 1e-9)
     assert np.all(pick[~found] == 0)
+
+
+def _pair_by_pair(targets, turned, sources, cost, order, limit, plain, banned):
+    """The dense step's rule over every pair, sources in index order: the cheapest cost + step of
+    an allowed pair, the lowest source on a tie (what the compiled ``_dense_min``, sources by cost,
+    stopping early and screening blocks, must give bit for bit; ``order`` is not needed)."""
+    nb, na = targets.shape[0], turned.shape[0]
+    total, pick = np.full(nb, np.inf), np.zeros(nb, dtype=np.int64)
+    to_deg = 180.0 / np.pi
+    for i in range(nb):
+        for j in range(na):
+            if banned.shape[0] > 0 and banned[i, j]:
+                continue
+            cos_turned = targets[i, 0] * turned[j, 0] + targets[i, 1] * turned[j, 1] + targets[i, 2] * turned[j, 2]
+            step = np.arccos(min(max(cos_turned, -1.0), 1.0)) * to_deg
+            cos_plain = targets[i, 0] * sources[j, 0] + targets[i, 1] * sources[j, 1] + targets[i, 2] * sources[j, 2]
+            if step <= limit or (plain >= 0.0 and np.arccos(min(max(cos_plain, -1.0), 1.0)) * to_deg <= plain):
+                if cost[j] + step < total[i]:
+                    total[i], pick[i] = cost[j] + step, j
+    return total, pick
+
+
+_pair_by_pair = njit(cache=False)(_pair_by_pair)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_screened_dense_step_is_the_pair_by_pair_loop_bit_for_bit(seed):
+    # Levels as the graph meets them (the grid's caps about two programmed vectors 3° apart,
+    # costs growing away from a preferred direction, exact ties, a level of 180°) and random ones
+    # (turns, plain steps, bans).
+    rng = np.random.default_rng(200 + seed)
+    if seed < 3:
+        programmed = np.array([[0.0, 0.0, 1.0], [np.sin(0.05), 0.0, np.cos(0.05)]])
+        cands, valid = level_candidates(SphereGrid(1.0), programmed @ rotation_from_z(rng.normal(size=3) * [0.3, 0.3, 1]).T,
+                                        30.0)
+        sources, targets = cands[0][valid[0]], cands[1][valid[1]]
+        toward = sources[rng.integers(len(sources))]
+        cost = 0.2 * angle_between_deg(sources, toward) + rng.uniform(0.0, 2.0, len(sources))
+        cost[rng.random(len(sources)) < 0.3] = 7.5  # ties
+        cost[rng.random(len(sources)) < 0.1] += 1e4  # left colliding
+        turned, plain, banned = sources, -1.0, np.zeros((0, 0), dtype=bool)
+        limit = (10.0, 3.0, 180.0)[seed] * LIMIT_SLACK
+    else:
+        def unit(n):
+            v = rng.normal(size=(n, 3)) * [0.3, 0.3, 1.0] + [0.0, 0.0, 2.0]
+            return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+        sources, targets = unit(400), unit(300)
+        turned = sources @ _about_y(25.0).T
+        cost = np.round(rng.uniform(0.0, 40.0, len(sources)), 1)
+        limit, plain = 12.0, (9.0 if seed % 2 else -1.0)
+        banned = rng.random((len(targets), len(sources))) < 0.2 if seed == 5 else np.zeros((0, 0), dtype=bool)
+    order = np.argsort(cost, kind="stable")
+    total, pick = _dense_min(targets, turned, sources, cost, order, limit, plain, banned)
+    want_total, want_pick = _pair_by_pair(targets, turned, sources, cost, order, limit, plain, banned)
+    assert np.isfinite(want_total).sum() > len(targets) // 2
+    np.testing.assert_array_equal(total, want_total)
+    np.testing.assert_array_equal(pick, want_pick)
 
 
 class _ShadowEpisode(_ToyEpisode):

@@ -152,3 +152,18 @@ def test_cached_arrays_give_the_same_answers(sample, tmp_path):
     tips, rotations = _poses(mold, 200, 5)
     assert [read.within(c, r, 0.5) for c, r in zip(tips, rotations)] == \
         [near.within(c, r, 0.5) for c, r in zip(tips, rotations)]
+
+
+def test_recent_pairs_tried_first_give_the_descent_s_answers(sample):
+    """Poses one after another (each tip stepping 0.3 mm at a time across the mold): the
+    answers with the recent pairs tried first are those of the descent alone, most of the
+    contacts found by a recent pair."""
+    _, mold, _, near = sample
+    tips, rotations = _poses(mold, 60, 8)
+    walk = [(tip + step * np.array([0.3, 0.0, 0.0]), rotation) for tip, rotation in zip(tips, rotations)
+            for step in range(8)]
+    recent, none = np.full((proximity.RECENT_PAIRS, 2), -1, dtype=np.int64), np.zeros((0, 2), dtype=np.int64)
+    codes = [near.test(c, r, d, recent) for (c, r), d in zip(walk, np.resize([0.0, 0.5, CAP_MM], len(walk)))]
+    alone = [near.test(c, r, d, none) for (c, r), d in zip(walk, np.resize([0.0, 0.5, CAP_MM], len(walk)))]
+    assert [code > 0 for code in codes] == [code > 0 for code in alone]
+    assert set(alone) == {0, 1} and codes.count(2) > codes.count(1) > 20

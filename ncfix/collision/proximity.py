@@ -35,6 +35,9 @@ CAP_MM = 2.0
 CELL_MM = 2.0
 # Added to every distance compared (mm): rounding may only turn a near miss into a hit.
 SLACK_MM = 1e-9
+# Pairs (head leaf, part triangle) found within the distance lately, tried first by the next
+# test: poses tested one after another often touch the part at the same place.
+RECENT_PAIRS = 16
 
 
 def _seg_seg_d2(p0, p1, p2, q0, q1, q2, r0, r1, r2, s0, s1, s2):  # pragma: no cover - compiled
@@ -130,15 +133,73 @@ def _tris_within(a, b, thr2):  # pragma: no cover - compiled
     return False
 
 
-def _within_kernel(c, r, d, head, center, radius, child_start, child_count, leaf0, stack_size, g, part, part_lo,
-                   part_hi, lo, cell, dims, start, listed):  # pragma: no cover - compiled
+def _place(c, r, head, j, w):  # pragma: no cover - compiled
+    """Head triangle j at tip c, rotation r, into w (3, 3)."""
+    for v in range(3):
+        x, y, z = head[j, v, 0], head[j, v, 1], head[j, v, 2]
+        for a in range(3):
+            w[v, a] = c[a] + r[a, 0] * x + r[a, 1] * y + r[a, 2] * z
+
+
+def _pair_reached(c, r, reach, j, t, leaf0, parent, center, radius, g, part, part_lo, part_hi, lo, cell, dims, start,
+                  listed):  # pragma: no cover - compiled
+    """Whether the descent of ``_within_kernel`` at tip c, rotation r puts head leaf j and part
+    triangle t to the pair test: the grid clears neither the leaf's ball nor any ball above it,
+    the cell of the leaf's centre lists t, and neither t's box nor its distance from the centre
+    rejects it (the descent's tests, in its arithmetic)."""
+    nd, wx, wy, wz = leaf0 + j, 0.0, 0.0, 0.0
+    while nd >= 0:
+        x, y, z = center[nd, 0], center[nd, 1], center[nd, 2]
+        px = c[0] + r[0, 0] * x + r[0, 1] * y + r[0, 2] * z
+        py = c[1] + r[1, 0] * x + r[1, 1] * y + r[1, 2] * z
+        pz = c[2] + r[2, 0] * x + r[2, 1] * y + r[2, 2] * z
+        if descent._grid_lb(px, py, pz, g) > radius[nd] + reach:
+            return False
+        if nd == leaf0 + j:
+            wx, wy, wz = px, py, pz
+        nd = parent[nd]
+    q0 = int(np.floor((wx - lo[0]) / cell))
+    q1 = int(np.floor((wy - lo[1]) / cell))
+    q2 = int(np.floor((wz - lo[2]) / cell))
+    if not (0 <= q0 < dims[0] and 0 <= q1 < dims[1] and 0 <= q2 < dims[2]):
+        return False
+    q = (q0 * dims[1] + q1) * dims[2] + q2
+    listed_here = False
+    for e in range(start[q], start[q + 1]):
+        listed_here |= listed[e] == t
+    grow = radius[leaf0 + j] + reach
+    return listed_here and not (
+        part_lo[t, 0] > wx + grow or part_lo[t, 1] > wy + grow or part_lo[t, 2] > wz + grow
+        or part_hi[t, 0] < wx - grow or part_hi[t, 1] < wy - grow or part_hi[t, 2] < wz - grow
+        or _tri_d2(wx, wy, wz, part[t]) > grow * grow)
+
+
+def _within_kernel(c, r, d, head, center, radius, child_start, child_count, parent, leaf0, stack_size, g, part,
+                   part_lo, part_hi, lo, cell, dims, start, listed, recent):  # pragma: no cover - compiled
     """Whether the head's triangles ``head`` (n, 3, 3, head frame; the leaves of the ball tree
-    center / radius / child_start / child_count, leaf i at node leaf0 + i) at tip c (3,),
-    rotation r (3, 3) come within d of the part's triangles ``part`` (m, 3, 3) (module doc); g:
-    the part grid's compiled bound (``descent._grid_lb``'s arrays)."""
+    center / radius / child_start / child_count / parent, leaf i at node leaf0 + i) at tip c
+    (3,), rotation r (3, 3) come within d of the part's triangles ``part`` (m, 3, 3) (module
+    doc): 0 when not, 1 when the descent found a pair, 2 when a recent pair is within d; g: the
+    part grid's compiled bound (``descent._grid_lb``'s arrays).
+
+    ``recent`` (k, 2): pairs (leaf, part triangle) found within d lately, most recent first,
+    -1 where none; each is tried first: the pair test, then, for a pair within d, every test the
+    descent would put it to (the balls of the leaf and of every node above it not cleared by the
+    grid, the triangle listed in the leaf's cell and within its reach), so a pair found so is one
+    the descent reaches: the answer is the descent's. A pair found within d goes to the front of
+    ``recent`` (one test at a time: the caller's pairs are its state)."""
     reach = d + SLACK_MM
     thr2 = reach * reach
     w = np.empty((3, 3))
+    for m in range(recent.shape[0]):
+        j, t = recent[m, 0], recent[m, 1]
+        if j < 0:
+            break
+        _place(c, r, head, j, w)
+        if _tris_within(w, part[t], thr2) and _pair_reached(c, r, reach, j, t, leaf0, parent, center, radius, g, part,
+                                                            part_lo, part_hi, lo, cell, dims, start, listed):
+            _to_front(recent, j, t)
+            return 2
     stack = np.empty(stack_size, np.int64)
     stack[0] = 0
     top = 1
@@ -176,20 +237,34 @@ def _within_kernel(c, r, d, head, center, radius, child_start, child_count, leaf
             if _tri_d2(wx, wy, wz, part[t]) > grow * grow:
                 continue
             if not placed:
-                for v in range(3):
-                    x, y, z = head[j, v, 0], head[j, v, 1], head[j, v, 2]
-                    for a in range(3):
-                        w[v, a] = c[a] + r[a, 0] * x + r[a, 1] * y + r[a, 2] * z
+                _place(c, r, head, j, w)
                 placed = True
             if _tris_within(w, part[t], thr2):
-                return True
-    return False
+                _to_front(recent, j, t)
+                return 1
+    return 0
+
+
+def _to_front(recent, j, t):  # pragma: no cover - compiled
+    """The pair (j, t) to the front of ``recent`` (k, 2), out of its old place or off the end."""
+    m = recent.shape[0] - 1
+    for k in range(recent.shape[0]):
+        if recent[k, 0] == j and recent[k, 1] == t:
+            m = k
+            break
+    for k in range(m, 0, -1):
+        recent[k, 0], recent[k, 1] = recent[k - 1, 0], recent[k - 1, 1]
+    if recent.shape[0]:
+        recent[0, 0], recent[0, 1] = j, t
 
 
 _seg_seg_d2 = njit(cache=True, nogil=True)(_seg_seg_d2)
 _edge_crosses = njit(cache=True, nogil=True)(_edge_crosses)
 _plane_apart = njit(cache=True, nogil=True)(_plane_apart)
 _tris_within = njit(cache=True, nogil=True)(_tris_within)
+_place = njit(cache=True, nogil=True)(_place)
+_pair_reached = njit(cache=True, nogil=True)(_pair_reached)
+_to_front = njit(cache=True, nogil=True)(_to_front)
 _within_kernel = njit(cache=True, nogil=True)(_within_kernel)
 
 
@@ -251,6 +326,10 @@ class HeadProximity:
         self.child_start = np.ascontiguousarray(arrays["child_start"], dtype=np.int64)
         self.child_count = np.ascontiguousarray(arrays["child_count"], dtype=np.int64)
         self.leaf0 = int(arrays["leaf0"])
+        self.parent = np.full(len(self.radius), -1, dtype=np.int64)  # the root's is -1
+        for node in np.flatnonzero(self.child_count):
+            self.parent[self.child_start[node]:self.child_start[node] + self.child_count[node]] = node
+        self.recent = np.full((RECENT_PAIRS, 2), -1, dtype=np.int64)  # ``_within_kernel``'s
         # Depth first: at most (children - 1) nodes wait on the stack per level, plus the node.
         self.stack_size = int(self.child_count.max() + 1) * int(arrays["levels"]) + 1
         self.part = np.ascontiguousarray(part_triangles, dtype=np.float64).reshape(-1, 3, 3)
@@ -266,12 +345,17 @@ class HeadProximity:
     def within(self, c: np.ndarray, r: np.ndarray, d: float) -> bool:
         """Whether the head at tip c (3,), rotation r (3, 3) comes within d (mm, 0 <= d <= cap) of
         the part's surface (to SLACK_MM, toward yes)."""
+        return self.test(c, r, d, self.recent) > 0
+
+    def test(self, c: np.ndarray, r: np.ndarray, d: float, recent: np.ndarray) -> int:
+        """``within`` with the recent pairs ``recent`` ((k, 2) int64, updated): 0 (not within), 1
+        (a pair found by the descent) or 2 (a recent pair) (``_within_kernel``)."""
         if not 0.0 <= d <= self.cap_mm:
             raise ValueError(f"HeadProximity.within: d = {d} mm is outside [0, {self.cap_mm}]")
-        return bool(_within_kernel(np.ascontiguousarray(c, dtype=np.float64), np.ascontiguousarray(r, dtype=np.float64),
-                                   float(d), self.head, self.center, self.radius, self.child_start, self.child_count,
-                                   self.leaf0, self.stack_size, self.bound, self.part, self.part_lo, self.part_hi,
-                                   self.lo, self.cell_mm, self.dims, self.start, self.listed))
+        return int(_within_kernel(np.ascontiguousarray(c, dtype=np.float64), np.ascontiguousarray(r, dtype=np.float64),
+                                  float(d), self.head, self.center, self.radius, self.child_start, self.child_count,
+                                  self.parent, self.leaf0, self.stack_size, self.bound, self.part, self.part_lo,
+                                  self.part_hi, self.lo, self.cell_mm, self.dims, self.start, self.listed, recent))
 
 
 def cached_head_proximity(head: trimesh.Trimesh, part: trimesh.Trimesh, grid: DistanceGrid,

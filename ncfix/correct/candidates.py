@@ -13,6 +13,12 @@ import functools
 import math
 
 import numpy as np
+from numba import njit
+
+# Two dot products of unit vectors closer than this may order differently in another float
+# evaluation (each carries at most a few units in the last place, about 1e-15): ``nearest``
+# leaves such a choice to the dense product. Neighbours on the grid differ by about 1e-4.
+NEAREST_MARGIN = 1e-12
 
 
 def fibonacci_sphere(count: int) -> np.ndarray:
@@ -66,3 +72,39 @@ def level_candidates(grid: SphereGrid, programmed: np.ndarray, max_tilt_deg: flo
         cands[level, 1:1 + len(cap)] = grid.points[cap]
         valid[level, 1:1 + len(cap)] = True
     return cands, valid
+
+
+def nearest(points: np.ndarray, among: np.ndarray) -> np.ndarray:
+    """For each of ``points`` (n, 3), the index of the vector of ``among`` (m, 3), m ≥ 1, with the
+    largest dot product: ``np.argmax(points @ among.T, axis=1)`` exactly (ties to the lowest
+    index). A compiled loop finds it without the (n, m) product; only where a runner-up comes
+    within NEAREST_MARGIN of the best (where another evaluation of the products could order
+    them otherwise) is the dense product itself taken."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    among = np.ascontiguousarray(among, dtype=np.float64)
+    best, clear = _nearest(points, among, NEAREST_MARGIN)
+    if clear:
+        return best
+    return np.argmax(points @ among.T, axis=1)
+
+
+@njit(cache=True, nogil=True)
+def _nearest(points, among, margin):  # pragma: no cover - compiled
+    """(index of the largest dot product per point, whether every best leads its runner-up by
+    more than ``margin``)."""
+    n, m = points.shape[0], among.shape[0]
+    out = np.zeros(n, dtype=np.int64)
+    clear = True
+    for i in range(n):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        best, second, arg = -np.inf, -np.inf, 0
+        for j in range(m):
+            d = x * among[j, 0] + y * among[j, 1] + z * among[j, 2]
+            if d > best:
+                best, second, arg = d, best, j
+            elif d > second:
+                second = d
+        out[i] = arg
+        if not best - second > margin:
+            clear = False
+    return out, clear

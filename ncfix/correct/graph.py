@@ -5,10 +5,13 @@ edges join consecutive levels within the step limit θ, weighted by the step plu
 target's deviation from the programmed orientation (as Fang et al. and Plakhotnik et al. do). Both
 end levels are anchored to candidate 0. On a layered DAG Dijkstra's result equals the level-by-level
 minimum computed here. The edges are found once (``LayeredGraph``); each search of the lazy loop
-takes a mask of the vertices allowed: one pass over the edges per round (docs/correction.md).
+takes a mask of the vertices allowed: one pass over the edges of the levels from the first one
+that changed since the last search (docs/correction.md).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
@@ -27,6 +30,25 @@ DENSE_ABOVE_DEG = 6.0
 # A step is allowed up to its limit times this (float noise never refuses a step at the limit);
 # ``LayeredGraph.steps`` and the compiled dense step (``_dense_min``) both apply it.
 LIMIT_SLACK = 1.0 + 1e-12
+# Sources screened at once by the dense step's compiled loop (``_dense_min``): a block is one
+# vectorised pass without square roots, and most blocks hold no pair worth a closer look.
+DENSE_BLOCK = 16
+
+
+@dataclass
+class _LastSearch:
+    """What ``LayeredGraph.cheapest`` computed in its last search: its inputs (the allowed vertices,
+    the penalty, the bans per level as counted then), every level's costs (after the level's
+    mask) and chosen sources, and the last level whose costs it computed. ``start``: the level
+    the search using this record computes first."""
+
+    ok: np.ndarray  # (L, K) bool
+    penalty: np.ndarray | None  # (L, K)
+    costs: np.ndarray  # (L, K)
+    back: np.ndarray  # (L, K) int64
+    bans: np.ndarray  # (L,) int64
+    reached: int = 0
+    start: int = 1
 
 
 class LayeredGraph:
@@ -68,6 +90,8 @@ class LayeredGraph:
             self.dense |= turning
         self.banned: dict[int, set[tuple[int, int]]] = {}
         self._ban_arrays: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # of ``banned``, made when searched
+        self._bans = np.zeros(levels, dtype=np.int64)  # calls of ``ban`` per level (what a search read)
+        self._last: _LastSearch | None = None  # ``cheapest``'s previous search, resumed where it differs
         # Per level l >= 1: for each vertex, up to ``neighbours`` sources at level l-1 and the angle.
         self.source: list[np.ndarray] = [np.zeros((k, 0), dtype=np.int64)]
         self.weight: list[np.ndarray] = [np.zeros((k, 0))]
@@ -108,6 +132,7 @@ class LayeredGraph:
         targets = np.asarray(targets, dtype=np.int64)
         if level <= 0 or len(targets) == 0:
             return
+        self._bans[level] += 1
         pairs = self.banned.setdefault(level, set())
         pairs.update((int(a), int(b)) for a in np.asarray(sources).reshape(-1) for b in targets)
         self._ban_arrays.pop(level, None)
@@ -121,20 +146,26 @@ class LayeredGraph:
         allowed : (L, K) bool. Returns the chosen index per level (L,) int, or None when no path
         of allowed vertices keeps every step within its limit. ``penalty`` (L, K): extra cost of
         a vertex.
+
+        A level's costs depend only on the levels up to it: a search that differs from the
+        previous one (its allowed vertices, penalties, bans) first at level m takes that search's
+        costs and choices up to m - 1 as they were, and computes the levels from m on.
         """
         levels, k = allowed.shape
         ok = allowed & self.valid
         ok[0, 1:] = False
         ok[-1, 1:] = False
-        cost = np.where(ok[0], 0.0, np.inf)
-        back = np.zeros((levels, k), dtype=np.int64)
+        last = self._resume(ok, penalty)
+        start, costs, back = last.start, last.costs, last.back
+        cost = np.where(ok[0], 0.0, np.inf) if start == 1 else costs[start - 1]
         rows = np.arange(k)
-        for level in range(1, levels):
+        for level in range(start, levels):
             if self.dense[level]:
                 best, back[level] = self._dense_step(level, cost, ok)
             else:
                 src = self.source[level]
                 if src.shape[1] == 0:
+                    last.reached = level - 1
                     return None
                 total = np.where(src >= 0, cost[np.maximum(src, 0)] + self.weight[level], np.inf)
                 pick = np.argmin(total, axis=1)
@@ -144,14 +175,37 @@ class LayeredGraph:
             if penalty is not None:
                 cost = cost + penalty[level]
             cost = np.where(ok[level], cost, np.inf)
+            costs[level] = cost
             if not np.isfinite(cost).any():
+                last.reached = level - 1
                 return None
+        last.reached = levels - 1
         if not np.isfinite(cost[0]):
             return None
         path = np.zeros(levels, dtype=np.int64)
         for level in range(levels - 1, 0, -1):
             path[level - 1] = back[level, path[level]]
         return path
+
+    def _resume(self, ok: np.ndarray, penalty: np.ndarray | None) -> _LastSearch:
+        """This search's record (``_LastSearch``): the previous one's, with ``start`` at the first
+        level whose allowed vertices, penalty or bans differ from it (or past the last level it
+        reached), or a new one starting at level 1."""
+        last = self._last
+        if last is None or last.ok.shape != ok.shape or (last.penalty is None) != (penalty is None):
+            levels, k = ok.shape
+            last = _LastSearch(ok, None, np.zeros((levels, k)), np.zeros((levels, k), dtype=np.int64), self._bans.copy())
+        else:
+            differs = (last.ok != ok).any(axis=1) | (last.bans != self._bans)
+            if penalty is not None:
+                differs |= (last.penalty != penalty).any(axis=1)
+            first = int(np.argmax(differs)) if differs.any() else len(differs)
+            last.start = max(1, min(first, last.reached + 1))  # level 0's vertices are the first costs
+            last.ok, last.bans = ok, self._bans.copy()
+        last.penalty = None if penalty is None else np.array(penalty, dtype=np.float64)
+        last.reached = last.start - 1
+        self._last = last
+        return last
 
     def steps(self, level: int, sources: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The steps from orientations ``sources`` (a, 3) at level - 1 to ``targets`` (b, 3) at
@@ -219,38 +273,69 @@ def _dense_min(targets, turned, sources, cost, order, limit, plain, banned):
     none is allowed.) The sources are visited in ``order`` of cost and a target stops at the first
     costing more than its best so far (a step is never negative), and a pair whose chord alone
     costs more is skipped, so the angles of most pairs are never computed; ties go to the lowest
-    source index, as an argmin over the sources would."""
+    source index, as an argmin over the sources would.
+
+    The sources go DENSE_BLOCK at a time: a block is screened first, without square roots, for a
+    pair the pair-by-pair test could take (chord within the limit, cost plus chord within the
+    best); a block with none is passed over whole. The screen's bounds are widened far beyond
+    rounding (it may let through a pair the test refuses, never the reverse), and the pairs it
+    lets through go to the test as they are: the answer is the pair-by-pair loop's, bit for bit."""
     nb, na = targets.shape[0], turned.shape[0]
     total = np.full(nb, np.inf)
     pick = np.zeros(nb, dtype=np.int64)
     use_ban = banned.shape[0] > 0
     to_deg = 180.0 / np.pi
+    # The screen: chord² = 2 - 2·cos; its degrees and the limit's, squared, with the slack.
+    scale2 = (to_deg * (1.0 - 1e-9)) ** 2 * (1.0 - 1e-12)
+    reach2 = (limit / (to_deg * (1.0 - 1e-9))) ** 2 * (1.0 + 1e-12) if plain < 0.0 else np.inf
+    # The sources in order of cost, padded to whole blocks with unreachable ones.
+    padded = (na + DENSE_BLOCK - 1) // DENSE_BLOCK * DENSE_BLOCK
+    cs = np.full(padded, np.inf)
+    sx, sy, sz = np.zeros(padded), np.zeros(padded), np.zeros(padded)
+    for k in range(na):
+        j = order[k]
+        cs[k], sx[k], sy[k], sz[k] = cost[j], turned[j, 0], turned[j, 1], turned[j, 2]
     for i in range(nb):
         tx, ty, tz = targets[i, 0], targets[i, 1], targets[i, 2]
         best, arg = np.inf, -1
-        for k in range(na):
-            j = order[k]
-            c = cost[j]
-            if c > best:
+        for lo in range(0, padded, DENSE_BLOCK):
+            if cs[lo] > best:
                 break
-            if use_ban and banned[i, j]:
+            tol = 1e-12 * (abs(best) + 1.0)
+            maybe = False
+            for k in range(lo, lo + DENSE_BLOCK):
+                m = 2.0 - 2.0 * min(max(tx * sx[k] + ty * sy[k] + tz * sz[k], -1.0), 1.0)
+                gap = best - cs[k] + tol
+                maybe |= (m <= reach2) & (gap >= 0.0) & (m * scale2 <= gap * gap)
+            if not maybe:
                 continue
-            d = min(max(tx * turned[j, 0] + ty * turned[j, 1] + tz * turned[j, 2], -1.0), 1.0)
-            # The chord 2·sin(φ/2) = sqrt(2 - 2d) is never longer than the arc φ (a hair less
-            # here, for rounding): a cheap lower bound that skips most arc-cosines.
-            chord = np.sqrt(max(2.0 - 2.0 * d, 0.0)) * to_deg * (1.0 - 1e-9)
-            if c + chord > best or (chord > limit and plain < 0.0):
-                continue
-            step = np.arccos(d) * to_deg
-            if not step <= limit:
-                if plain < 0.0:
+            stop = False
+            for k in range(lo, min(lo + DENSE_BLOCK, na)):
+                c = cs[k]
+                if c > best:
+                    stop = True
+                    break
+                j = order[k]
+                if use_ban and banned[i, j]:
                     continue
-                e = min(max(tx * sources[j, 0] + ty * sources[j, 1] + tz * sources[j, 2], -1.0), 1.0)
-                if not np.arccos(e) * to_deg <= plain:
+                d = min(max(tx * sx[k] + ty * sy[k] + tz * sz[k], -1.0), 1.0)
+                # The chord 2·sin(φ/2) = sqrt(2 - 2d) is never longer than the arc φ (a hair less
+                # here, for rounding): a cheap lower bound that skips most arc-cosines.
+                chord = np.sqrt(max(2.0 - 2.0 * d, 0.0)) * to_deg * (1.0 - 1e-9)
+                if c + chord > best or (chord > limit and plain < 0.0):
                     continue
-            t = c + step
-            if t < best or (t == best and j < arg):
-                best, arg = t, j
+                step = np.arccos(d) * to_deg
+                if not step <= limit:
+                    if plain < 0.0:
+                        continue
+                    e = min(max(tx * sources[j, 0] + ty * sources[j, 1] + tz * sources[j, 2], -1.0), 1.0)
+                    if not np.arccos(e) * to_deg <= plain:
+                        continue
+                t = c + step
+                if t < best or (t == best and j < arg):
+                    best, arg = t, j
+            if stop:
+                break
         if arg >= 0:
             total[i], pick[i] = best, arg
     return total, pick

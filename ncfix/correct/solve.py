@@ -19,7 +19,7 @@ import numpy as np
 from ncfix.collision.deposit import BeadStore
 from ncfix.collision.path import Moves
 from ncfix.correct.blend import blend
-from ncfix.correct.candidates import SphereGrid, level_candidates
+from ncfix.correct.candidates import SphereGrid, level_candidates, nearest
 from ncfix.correct.graph import LayeredGraph
 from ncfix.geometry.frames import angle_between_deg, minimal_rotation, turn_rotations
 from ncfix.kinematics.base import Unreachable
@@ -588,7 +588,7 @@ class GraphStrategy:
             cap = self.coarse.cap(ep.N0[lv], self.max_tilt)
             if len(cap) == 0 or len(idx) == 0:
                 continue
-            near = np.argmax(self.coarse.points[cap] @ cands[lv, idx].T, axis=1)
+            near = nearest(self.coarse.points[cap], cands[lv, idx])
             take = np.unique(idx[near])
             take = take[state[lv, take] == 0]
             lv_all.append(np.full(len(take), lv)), ci_all.append(take)
@@ -601,8 +601,7 @@ class GraphStrategy:
             todo = np.flatnonzero(valid[lv] & (state[lv] == 0))
             if len(tested) == 0 or len(todo) == 0:
                 continue
-            nearest = tested[np.argmax(cands[lv, todo] @ cands[lv, tested].T, axis=1)]
-            promising[lv, todo] = state[lv, nearest] == 1
+            promising[lv, todo] = state[lv, tested[nearest(cands[lv, todo], cands[lv, tested])]] == 1
         return promising
 
     def _test_near(self, ep: Episode, cands, valid, state, levels: np.ndarray, pick: np.ndarray) -> None:
