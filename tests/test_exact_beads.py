@@ -160,3 +160,45 @@ def test_store_near_gives_each_levels_ball_query_in_its_order():
             assert len(got) == len(want) and all(np.array_equal(a, b) for a, b in zip(got, want))
             wholes += sum(len(g) == len(pts) for g, (_, pts) in zip(got, levels))
     assert wholes >= 3 * len(levels)
+
+
+@pytest.mark.parametrize("allowance", [0.2, 1.0])
+def test_runs_that_gather_once_keep_each_poses_candidates(monkeypatch, allowance):
+    """Consecutive poses gather their bead chunks once per run (``first_bead_hits``, ``shared``):
+    every pose keeps the hit, clearance, candidates and exact tests it gets visiting every chunk
+    of its cells itself. Real poses: the first layer of the corpus print model_1 with its recipe,
+    at its tip allowance (1 mm) and at 0.2 mm, where the beads under the nozzle are candidates and
+    the poses hit them."""
+    import io
+
+    import ncfix
+    from conftest import REPO, corpus_path
+    from ncfix.collision import checker, exact_beads
+
+    path = corpus_path("multiaxis_3dp_motionplanning", "model_1_Gcode.txt")
+    corpus_path("multiaxis_3dp_motionplanning", "extruderHead_converted.stl")
+    lines = path.read_bytes().splitlines(keepends=True)[:1200] + [b"M30\n"]
+    seen = {"poses": 0, "gathered": 0, "candidates": 0, "hits": 0}
+    real = exact_beads.first_bead_hits
+
+    def both(C, R, *args, **kw):
+        shared = real(C, R, *args, **kw)
+        alone = real(C, R, *args, **kw, shared=False)
+        for a, b in zip(shared, alone):
+            np.testing.assert_array_equal(a, b)
+        p0 = 0
+        while p0 < len(C):  # the poses the shared path took in runs it gathered for
+            p1 = exact_beads._run_end(np.ascontiguousarray(C), np.ascontiguousarray(R), p0, len(C))
+            seen["gathered"] += p1 - p0 if p1 - p0 >= exact_beads.RUN_MIN else 0
+            p0 = p1
+        seen["poses"] += len(C)
+        seen["candidates"] += int(shared[2].sum())
+        seen["hits"] += int(shared[0].sum())
+        return shared
+
+    monkeypatch.setattr(checker, "first_bead_hits", both)
+    ncfix.process(io.BytesIO(b"".join(lines)), io.BytesIO(), config=REPO / "samples" / "model_1.toml", check=True,
+                  quiet=True, tip_allowance=allowance)
+    assert seen["gathered"] > seen["poses"] // 2
+    if allowance < 1.0:
+        assert seen["candidates"] > 1000 and seen["hits"] > 100, seen

@@ -124,8 +124,8 @@ def _node_fails(C, R, p, nd, lin, ang, extra, center, radius, reach, mode, g, f,
     return _lb(x, y, z, mode, g, f, b) <= need
 
 
-def _undecided_kernel(C, R, lin, ang, extra, center, radius, reach, children, first, last, cap, levels, mode, g, f,
-                      b, out):
+def _undecided_loop(C, R, lin, ang, extra, center, radius, reach, children, first, last, cap, levels, mode, g, f,
+                    b, out):
     """Depth first, stopping at the first failing leaf: a pose is undecided when a failing node
     whose ancestors (from the entry level) all fail is a leaf, or is one more than ``cap`` on its
     level. Which nodes fail does not depend on the order they are visited in, so this is the
@@ -161,8 +161,8 @@ def _undecided_kernel(C, R, lin, ang, extra, center, radius, reach, children, fi
         out[p] = undecided
 
 
-def _failing_kernel(C, R, lin, ang, extra, center, radius, reach, child_start, child_count, level, size,
-                    mode, g, f, b, pad, box):
+def _failing_loop(C, R, lin, ang, extra, center, radius, reach, child_start, child_count, level, size,
+                  mode, g, f, b, pad, box):
     """Per pose, the nodes at ``level`` whose sphere fails (from the root) -> (pose, node), in
     pose order and tree order within a pose. ``box`` (2, 3) grows to hold each such node's ball
     widened by ``pad``: centre C + R c, radius r + lin + ang·reach + pad + extra."""
@@ -208,6 +208,40 @@ def _failing_kernel(C, R, lin, ang, extra, center, radius, reach, child_start, c
     return pose_out[:total].copy(), node_out[:total].copy()
 
 
+# The kernels below run their loop with ``mode`` a constant, one copy per kind of bound: with the
+# bound chosen at every node, the descent took twice as long (the compiler keeps no kind's values
+# at hand). The same arithmetic either way.
+def _undecided_kernel(C, R, lin, ang, extra, center, radius, reach, children, first, last, cap, levels, mode, g, f,
+                      b, out):
+    if mode == MODE_FIELD:
+        _undecided_loop(C, R, lin, ang, extra, center, radius, reach, children, first, last, cap, levels, MODE_FIELD,
+                        g, f, b, out)
+    elif mode == MODE_GRID:
+        _undecided_loop(C, R, lin, ang, extra, center, radius, reach, children, first, last, cap, levels, MODE_GRID,
+                        g, f, b, out)
+    elif mode == MODE_FIELD_BELOW:
+        _undecided_loop(C, R, lin, ang, extra, center, radius, reach, children, first, last, cap, levels,
+                        MODE_FIELD_BELOW, g, f, b, out)
+    else:
+        _undecided_loop(C, R, lin, ang, extra, center, radius, reach, children, first, last, cap, levels, MODE_CLEAR,
+                        g, f, b, out)
+
+
+def _failing_kernel(C, R, lin, ang, extra, center, radius, reach, child_start, child_count, level, size,
+                    mode, g, f, b, pad, box):
+    if mode == MODE_FIELD:
+        return _failing_loop(C, R, lin, ang, extra, center, radius, reach, child_start, child_count, level, size,
+                             MODE_FIELD, g, f, b, pad, box)
+    if mode == MODE_GRID:
+        return _failing_loop(C, R, lin, ang, extra, center, radius, reach, child_start, child_count, level, size,
+                             MODE_GRID, g, f, b, pad, box)
+    if mode == MODE_FIELD_BELOW:
+        return _failing_loop(C, R, lin, ang, extra, center, radius, reach, child_start, child_count, level, size,
+                             MODE_FIELD_BELOW, g, f, b, pad, box)
+    return _failing_loop(C, R, lin, ang, extra, center, radius, reach, child_start, child_count, level, size,
+                         MODE_CLEAR, g, f, b, pad, box)
+
+
 _gather = njit(cache=True, nogil=True, inline="always")(_gather)
 _box_gap = njit(cache=True, nogil=True, inline="always")(_box_gap)
 _field_lb = njit(cache=True, nogil=True, inline="always")(_field_lb)
@@ -215,6 +249,8 @@ _grid_lb = njit(cache=True, nogil=True, inline="always")(_grid_lb)
 _lb = njit(cache=True, nogil=True, inline="always")(_lb)
 _lb_points = njit(cache=True, nogil=True)(_lb_points)
 _node_fails = njit(cache=True, nogil=True, inline="always")(_node_fails)
+_undecided_loop = njit(cache=True, nogil=True, inline="always")(_undecided_loop)
+_failing_loop = njit(cache=True, nogil=True, inline="always")(_failing_loop)
 _undecided_kernel = njit(cache=True, nogil=True)(_undecided_kernel)
 _failing_kernel = njit(cache=True, nogil=True)(_failing_kernel)
 
