@@ -23,7 +23,7 @@ from numba import njit
 
 from ncfix import cache
 from ncfix.collision.near import _winding
-from ncfix.geometry.meshdata import Mesh, as_mesh, component_labels
+from ncfix.geometry.meshdata import Mesh, as_mesh, component_labels, mesh_arrays
 
 if TYPE_CHECKING:
     import trimesh
@@ -261,10 +261,7 @@ def cached_clip_head(head, height_mm: float, cache_dir: str | None = None) -> Me
 
     def from_arrays(a: dict[str, np.ndarray]) -> Mesh | None:
         v, f = a["vertices"], a["faces"]
-        if v.dtype != np.float64 or f.dtype != np.int64 or v.ndim != 2 or f.ndim != 2 or v.shape[1:] != (3,) \
-                or f.shape[1:] != (3,):
-            return None
-        return Mesh(v, f)
+        return Mesh(v, f) if mesh_arrays(v, f) else None
 
     clipped, _ = cache.cached("clip", key, ("vertices", "faces"), lambda: as_mesh(clip_head(head, height_mm)),
                               lambda m: {"vertices": m.vertices, "faces": m.faces}, from_arrays, cache_dir)

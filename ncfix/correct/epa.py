@@ -25,7 +25,7 @@ from ncfix import cache
 from ncfix.collision.near import tri_closest
 from ncfix.correct.decompose import Decomposition, decompose
 from ncfix.geometry.frames import angle_between_deg, axis_rotation
-from ncfix.geometry.meshdata import Mesh, as_mesh, as_trimesh
+from ncfix.geometry.meshdata import Mesh, as_mesh, as_trimesh, mesh_arrays
 
 if TYPE_CHECKING:
     import trimesh
@@ -437,12 +437,11 @@ def _head_hulls(head: Mesh, tip_allowance_mm: float, cache_dir: str | Path | Non
                 "bead_vertices": bead.vertices, "bead_faces": bead.faces, "bead_normals": bead.face_normals}
 
     def from_arrays(a: dict[str, np.ndarray]) -> dict[str, np.ndarray] | None:
-        for name in _HULL_ARRAYS:
-            kind = np.int64 if name.endswith("faces") else np.float64
-            if a[name].dtype != kind or a[name].ndim != 2 or a[name].shape[1] != 3:
+        for hull in ("hull", "bead"):
+            normals = a[f"{hull}_normals"]
+            if not mesh_arrays(a[f"{hull}_vertices"], a[f"{hull}_faces"]) or normals.dtype != np.float64 \
+                    or normals.shape != a[f"{hull}_faces"].shape:
                 return None
-        if len(a["hull_faces"]) != len(a["hull_normals"]) or len(a["bead_faces"]) != len(a["bead_normals"]):
-            return None
         return a
 
     def to_arrays(a: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

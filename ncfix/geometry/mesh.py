@@ -29,7 +29,7 @@ from ncfix import cache
 from ncfix.errors import GeometryError
 from ncfix.geometry.distance import point_mesh_distance
 from ncfix.geometry.frames import rotation_between
-from ncfix.geometry.meshdata import Mesh
+from ncfix.geometry.meshdata import Mesh, mesh_arrays
 from ncfix.geometry.place import parse
 from ncfix.geometry.tolerances import TOLERANCES
 
@@ -142,8 +142,7 @@ def _load_file(path: Path, role: Role, option: str) -> LoadedMesh:
 
     def from_arrays(a: dict[str, np.ndarray]) -> LoadedMesh | None:
         v, f = a["vertices"], a["faces"]
-        if v.dtype != np.float64 or f.dtype != np.int64 or v.ndim != 2 or f.ndim != 2 \
-                or v.shape[1] != 3 or f.shape[1] != 3 or a["closed"].dtype != np.bool_:
+        if not mesh_arrays(v, f) or a["closed"].dtype != np.bool_:
             return None
         said = json.loads(a["warnings"].tobytes().decode("utf-8"))
         # Copies: a placement moves the vertices in place, never in the cache file.

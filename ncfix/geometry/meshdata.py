@@ -75,6 +75,13 @@ class Mesh:
         return self._trimesh
 
 
+def mesh_arrays(vertices: np.ndarray, faces: np.ndarray) -> bool:
+    """Whether arrays read back from the cache make a ``Mesh`` as it is stored: vertices (n, 3)
+    float64 and faces (m, 3) int64 (``ncfix.cache.cached``'s ``from_arrays`` checks)."""
+    return vertices.dtype == np.float64 and faces.dtype == np.int64 and vertices.ndim == 2 and faces.ndim == 2 \
+        and vertices.shape[1] == 3 and faces.shape[1] == 3
+
+
 def as_mesh(mesh) -> Mesh:
     """A ``Mesh`` of anything with ``vertices`` and ``faces`` (a trimesh, a Mesh: itself)."""
     if isinstance(mesh, Mesh):
