@@ -152,3 +152,24 @@ def test_far_points_read_wider_lists_and_get_the_same_distances(monkeypatch):
     assert np.array_equal(tiered, every)
     assert np.allclose(tiered, np.abs(np.linalg.norm(points, axis=1) - 20.0), atol=0.5)  # a sphere, nearly
     assert (tiered > 3.0 * near.FAR_FACTOR ** 6).any() and (tiered < 3.0).any()
+
+
+def test_surface_distances_are_the_floats_of_reading_every_triangle(solid):
+    """The box culling and the previous point's nearest triangle only skip triangles: each distance
+    is the very float of the least ``_tri_d2`` over every triangle, and it does not depend on the
+    points before it (a point alone, or the points in another order, get the same floats)."""
+    from ncfix.collision import near
+
+    tris = solid
+    rng = np.random.default_rng(11)
+    # Lattice runs (as a grid's band gives them), scattered points, far ones and points on edges.
+    lattice = np.stack(np.meshgrid(*[np.arange(-24.0, 24.0, 1.5)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    corners = tris.reshape(-1, 3)[rng.integers(0, len(tris) * 3, 200)]
+    points = np.concatenate([lattice, _points(tris, 600, 12), rng.uniform(-300.0, 300.0, (100, 3)), corners])
+    every = np.array([np.sqrt(min(near._tri_d2(p[0], p[1], p[2], t) for t in tris)) for p in points])
+    got = near.surface_distances(tris, points, 3.0)
+    assert np.array_equal(got, every)
+    order = rng.permutation(len(points))
+    assert np.array_equal(near.surface_distances(tris, points[order], 3.0), every[order])
+    alone = np.array([near.surface_distances(tris, p[None], 3.0)[0] for p in points[::37]])
+    assert np.array_equal(alone, every[::37])

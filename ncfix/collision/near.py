@@ -22,6 +22,8 @@ from ncfix.memory import ensure_fits, grid_cells
 SIGN_PITCH_MM = 0.5
 # Covers the voxelizer's ray jitter and float rounding (mm).
 SIGN_SLACK_MM = 1e-4
+# ``surface_distances`` skips a triangle whose box lies this much (mm) beyond the nearest one so far.
+CULL_MM = 1e-6
 # Cell lists hold at most this many cells: a large mesh gets larger cells (``_cell_lists``).
 MAX_CELLS = 4_000_000
 # The code a NearSurface comes from: editing any of these files makes every cached one a miss.
@@ -231,26 +233,69 @@ def _nearest_d2(px, py, pz, stop2, tris, lo, cell, dims, cap, start, listed):  #
     return best
 
 
-def _distances_kernel(points, out, tris, lo, cell, dims, cap, start, listed):  # pragma: no cover - compiled
-    """out[i] = the exact distance from points[i] to the surface."""
-    for i in range(points.shape[0]):
-        out[i] = np.sqrt(_nearest_d2(points[i, 0], points[i, 1], points[i, 2], -1.0, tris, lo, cell, dims, cap,
-                                     start, listed))
+def _box_d2(px, py, pz, box):  # pragma: no cover - compiled
+    """Squared distance from (px, py, pz) to the box (2, 3) (0 inside it): never above the squared
+    distance to anything in the box."""
+    dx = max(box[0, 0] - px, 0.0, px - box[1, 0])
+    dy = max(box[0, 1] - py, 0.0, py - box[1, 1])
+    dz = max(box[0, 2] - pz, 0.0, pz - box[1, 2])
+    return dx * dx + dy * dy + dz * dz
 
 
-def _near_distances_kernel(points, out, tris, lo, cell, dims, cap, start, listed):  # pragma: no cover - compiled
+def _cull_limit(best):  # pragma: no cover - compiled
+    """The squared box distance past which a triangle is certainly farther than ``best`` (a squared
+    distance): ``CULL_MM`` beyond it, far more than the rounding of either distance."""
+    return (np.sqrt(best) + CULL_MM) ** 2
+
+
+def _min_d2(px, py, pz, tris, boxes, a, b, listed, best, arg):  # pragma: no cover - compiled
+    """The least of ``best`` (the squared distance to triangle ``arg``) and the squared distances to
+    the triangles listed[a:b] (every triangle in a..b when listed is empty) -> (least, its
+    triangle). A triangle whose box lies beyond ``_cull_limit`` of the least so far is skipped: its
+    own distance is larger, so the least is the same float as reading them all."""
+    lim = _cull_limit(best)
+    for j in range(a, b):
+        g = listed[j] if len(listed) else j
+        if _box_d2(px, py, pz, boxes[g]) > lim:
+            continue
+        d2 = _tri_d2(px, py, pz, tris[g])
+        if d2 < best:
+            best, arg = d2, g
+            lim = _cull_limit(best)
+    return best, arg
+
+
+def _near_distances_kernel(points, out, tris, boxes, lo, cell, dims, cap, start, listed,
+                           last):  # pragma: no cover - compiled
     """out[i] = the exact distance from points[i] to the surface when it is within ``cap`` (the
-    cell's list holds the nearest triangle then), else -1 (not known here)."""
+    cell's list holds the nearest triangle then), else -1 (not known here), or with ``last`` the
+    exact distance always (every triangle read past the cap).
+
+    The nearest triangle of the point before starts each search (``hint``): it only lets
+    ``_min_d2`` skip more. When it is not in the cell's list it lies beyond the cap (the list holds
+    every triangle within the cap, with 1e-9 mm to spare), so the least within the cap is the
+    list's own either way, and each point's distance does not depend on the points before it."""
+    cap2 = cap * cap
+    none = listed[:0]
+    hint = -1
     for i in range(points.shape[0]):
-        best = np.inf
-        x = int(np.floor((points[i, 0] - lo[0]) / cell))
-        y = int(np.floor((points[i, 1] - lo[1]) / cell))
-        z = int(np.floor((points[i, 2] - lo[2]) / cell))
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        best, arg = np.inf, -1
+        x = int(np.floor((px - lo[0]) / cell))
+        y = int(np.floor((py - lo[1]) / cell))
+        z = int(np.floor((pz - lo[2]) / cell))
         if 0 <= x < dims[0] and 0 <= y < dims[1] and 0 <= z < dims[2]:
+            if hint >= 0:
+                best, arg = _tri_d2(px, py, pz, tris[hint]), hint
             k = (x * dims[1] + y) * dims[2] + z
-            for j in range(start[k], start[k + 1]):
-                best = min(best, _tri_d2(points[i, 0], points[i, 1], points[i, 2], tris[listed[j]]))
-        out[i] = np.sqrt(best) if best <= cap * cap else -1.0
+            best, arg = _min_d2(px, py, pz, tris, boxes, start[k], start[k + 1], listed, best, arg)
+        if best > cap2 and last:
+            best, arg = _min_d2(px, py, pz, tris, boxes, 0, tris.shape[0], none, best, arg)
+        if best <= cap2 or last:
+            out[i] = np.sqrt(best)
+            hint = arg
+        else:
+            out[i] = -1.0
 
 
 def _side(px, py, pz, d, tris, slo, spitch, inside):  # pragma: no cover - compiled
@@ -300,7 +345,9 @@ _sign_certain = _jit(_sign_certain)
 _side = _jit(_side)
 _touch = _jit(_touch)
 _nearest_d2 = _jit(_nearest_d2)
-_distances_kernel = _jit(_distances_kernel)
+_box_d2 = _jit(_box_d2)
+_cull_limit = _jit(_cull_limit)
+_min_d2 = _jit(_min_d2)
 _near_distances_kernel = _jit(_near_distances_kernel)
 _signed_distance = _jit(_signed_distance)
 depth_bound = _jit(depth_bound)
@@ -347,7 +394,8 @@ def surface_distances(triangles: np.ndarray, points: np.ndarray, cap_mm: float, 
     (m, 3, 3). A point within ``cap_mm`` of them reads one cell's list; a farther one the lists of
     a larger cap (``FAR_FACTOR``), and past the last one every triangle: the same minimum over the
     same triangle distances either way, so ``cap_mm`` only sets the cost. The lists cover only the
-    points' box. Runs of points go to the machine's cores."""
+    points' box. A triangle whose box is farther than the nearest one found is not measured
+    (``_min_d2``: the same minimum). Runs of points go to the machine's cores."""
     tris = np.ascontiguousarray(triangles, dtype=np.float64)
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     out = np.empty(len(pts), dtype=np.float64)
@@ -356,24 +404,28 @@ def surface_distances(triangles: np.ndarray, points: np.ndarray, cap_mm: float, 
     if not len(tris):
         out[:] = np.inf
         return out
-    todo = np.arange(len(pts))
+    boxes = np.ascontiguousarray(np.stack([tris.min(axis=1), tris.max(axis=1)], axis=1))
+    todo = None  # every point
     cap, cell = float(cap_mm), float(cell_mm)
     for tier in range(FAR_TIERS + 1):
-        sub = np.ascontiguousarray(pts[todo])
+        sub = pts if todo is None else np.ascontiguousarray(pts[todo])
         got = np.empty(len(sub), dtype=np.float64)
-        lo, dims, start, listed, used_cell = _cell_lists(tris, cap, cell, np.array([sub.min(axis=0), sub.max(axis=0)]))
+        # Column by column: ten times faster than min(axis=0) on a million rows.
+        box = np.array([[sub[:, a].min() for a in range(3)], [sub[:, a].max() for a in range(3)]])
+        lo, dims, start, listed, used_cell = _cell_lists(tris, cap, cell, box)
         last = tier == FAR_TIERS
 
         def run(a: int, b: int) -> None:
-            if last:
-                _distances_kernel(sub[a:b], got[a:b], tris, lo, used_cell, dims, cap, start, listed)
-            else:
-                _near_distances_kernel(sub[a:b], got[a:b], tris, lo, used_cell, dims, cap, start, listed)
+            _near_distances_kernel(sub[a:b], got[a:b], tris, boxes, lo, used_cell, dims, cap, start, listed, last)
 
         map_runs(run, len(sub))
         known = got >= 0.0
-        out[todo[known]] = got[known]
-        todo = todo[~known]
+        if todo is None:
+            out[known] = got[known]
+            todo = np.flatnonzero(~known)
+        else:
+            out[todo[known]] = got[known]
+            todo = todo[~known]
         if not len(todo):
             break
         cap, cell = cap * FAR_FACTOR, cell * FAR_FACTOR
