@@ -388,6 +388,54 @@ def test_bead_field_is_a_lower_bound_on_the_distance_to_the_beads():
     assert np.array_equal(field.lower_bound_np(pts), bound)
 
 
+def test_overlays_of_a_growing_chain_stamp_as_a_fresh_overlay_would():
+    """Overlays whose points begin with the last overlay's (the pending beads of one detection's
+    runs) start from what it stamped: the grids inside each are those of a field that stamps all
+    the points afresh, whether the chain ends within a chord, goes on straight or turns, is cut
+    short, starts elsewhere, or the field took beads between two overlays."""
+    from ncfix.collision.deposit import BeadField
+
+    x = np.arange(0.0, 120.0, 0.25)
+    # straight (long chords), then a bend, then a gap (a chain of its own) and a curl
+    chain = np.concatenate([np.stack([x[:200], 0 * x[:200], 0 * x[:200]], axis=1),
+                            np.stack([x[199] + 3 * np.sin(x[:160] / 6), 3 - 3 * np.cos(x[:160] / 6),
+                                      0.05 * x[:160]], axis=1),
+                            np.stack([20 + np.cos(x[:120] / 2), 30 + np.sin(x[:120] / 2), 0.1 * x[:120]], axis=1)])
+    base = [np.stack([x, 5 + 0 * x, 2 + 0 * x], axis=1)]
+
+    def fresh_field():
+        field = BeadField(1.0, PITCH)
+        for b in base:
+            field.add(b)
+        return field
+
+    field, reference = fresh_field(), fresh_field()
+    for f in (field, reference):  # grids that hold every overlay: the same placement in both
+        f._grow(chain)
+    steps = [(0, 150), (0, 300), (0, 301), (0, 301), (0, 455), (0, 200), (0, 600), (5, 600), (0, 680), "add",
+             (0, 500), (0, 680)]
+    hits = 0
+    for step in steps:
+        if step == "add":
+            extra = np.array([[60.0, 20.0, 1.0]])
+            field.add(extra)
+            reference.add(extra)
+            continue
+        pts = chain[step[0]:step[1]]
+        hits += field._overlaid is not None and len(field._overlaid[1]) <= len(pts) and \
+            np.array_equal(field._overlaid[1], pts[:len(field._overlaid[1])])
+        reference._overlaid = None  # every point stamped
+        before = field.fine.copy(), field.coarse.copy(), field.occupied.copy(), field.box.copy(), field.count
+        with field.overlay(pts), reference.overlay(pts):
+            assert np.array_equal(field.fine, reference.fine)
+            assert np.array_equal(field.coarse, reference.coarse)
+            assert np.array_equal(field.occupied, reference.occupied)
+            assert np.array_equal(field.box, reference.box) and field.count == reference.count
+        after = field.fine, field.coarse, field.occupied, field.box, field.count
+        assert all(np.array_equal(u, v) for u, v in zip(before, after))
+    assert hits >= 6  # the overlays did start from the last one's stamps
+
+
 def test_stamping_gives_every_cell_the_least_value_of_the_chords_that_reach_it():
     """The compiled stamp (which walks each column of cells from the chord's nearest height up and
     down, stopping at the first cell out of reach) leaves every cell of the fine grid at the least

@@ -525,6 +525,9 @@ class BeadField:
         self._tensors: dict = {}
         self._dirty: list[tuple[str, tuple[slice, ...]]] = []
         self._kernel = _coarse_kernel(self.coarse_mm, self.radius_mm)
+        self._version = 0  # bumped whenever the grids change for good (``_changed``)
+        # The last overlay's points and its grids before its last chord (``_Overlay``), or None.
+        self._overlaid: tuple | None = None
         # Material this field no longer holds (``crop``: the store's retired beads), bounded by a
         # field of its own: ``lower_bound`` is the smaller of the two.
         self.below: BeadField | None = None
@@ -550,7 +553,8 @@ class BeadField:
         self._grow(pts)
         self.box = np.array([np.minimum(self.box[0], pts.min(axis=0)), np.maximum(self.box[1], pts.max(axis=0))])
         self.count += len(pts)
-        a, b, dev = self._chords(chain)
+        a, b, dev, _ = self._chords(chain)
+        self._changed()
         kern = _stamp_kernels()
         kern.stamp_chords(self.fine, self.fine_lo, self.pitch_mm, a, b, dev, self.radius_mm, self.step_mm,
                           FINE_LEVELS, FIELD_SLACK_MM)
@@ -560,8 +564,14 @@ class BeadField:
             self._mark_dirty(a, b, dev, cells)
 
     def _chords(self, chain: np.ndarray):
+        """(a, b, deviation, start): the chords of the chain (``_chords_py``)."""
         link = np.linalg.norm(np.diff(chain, axis=0), axis=1) <= self.link_mm
         return _stamp_kernels().chords(chain, link, CHORD_TOL_MM, CHORD_MAX_POINTS, CHORD_MAX_MM)
+
+    def _changed(self) -> None:
+        """The grids' content or placement changed for good (``overlay``'s stamps no longer apply)."""
+        self._version += 1
+        self._overlaid = None
 
     def _fine_reach(self) -> float:
         return self.fine_reach_mm + self.radius_mm + CHORD_TOL_MM + self.pitch_mm
@@ -587,6 +597,7 @@ class BeadField:
         if grown_f or grown_c:
             self._tensors = {}
             self._dirty = []
+            self._changed()
 
     def crop(self, lo_mm: np.ndarray, hi_mm: np.ndarray) -> None:
         """Keep the grids only where they can matter for beads inside the box [lo_mm, hi_mm] (the
@@ -608,6 +619,7 @@ class BeadField:
         self.box = np.array([np.maximum(self.box[0], lo_mm), np.minimum(self.box[1], hi_mm)])
         self._tensors = {}
         self._dirty = []
+        self._changed()
 
     def _mark_dirty(self, a, b, dev, cells) -> None:
         h = self.pitch_mm
@@ -622,6 +634,17 @@ class BeadField:
         self._dirty.append(("coarse", tuple(slice(int(x), int(y)) for x, y in zip(lo, hi))))
 
     class _Overlay:
+        """Stamps points into the field for a ``with`` block, then puts the grids back.
+
+        Overlays of a growing chain (the pending beads of the runs of one detection, each the
+        beads of the one before and more) stamp only what is new: the grids as the last overlay
+        left them before its last chord are kept, and an overlay whose points begin with the last
+        one's, on grids that did not change since (``_changed``), starts from them and stamps the
+        chords from that last chord's start on. The chords of a chain are found greedily from its
+        start, so those before the last one are the same for any chain that begins with it, and
+        a stamp is a least value per cell (the order of the chords does not matter): the grids
+        come out as stamping every point would make them."""
+
         def __init__(self, field: "BeadField", points: np.ndarray):
             self.field, self.points = field, np.asarray(points, dtype=np.float64).reshape(-1, 3)
 
@@ -631,7 +654,6 @@ class BeadField:
             if len(pts) == 0:
                 return f
             f._grow(pts)
-            a, b, dev = f._chords(pts)
             cells = f._coarse_index(pts)
             h = f.pitch_mm
             reach = f._fine_reach()
@@ -646,9 +668,23 @@ class BeadField:
                           f.count, f._last)
             f.box = np.array([np.minimum(f.box[0], pts.min(axis=0)), np.maximum(f.box[1], pts.max(axis=0))])
             f.count += len(pts)
+            start, new_cells = 0, cells
+            last = f._overlaid
+            if last is not None and last[0] == f._version and len(last[1]) <= len(pts) \
+                    and np.array_equal(last[1], pts[:len(last[1])]):
+                _, before, start, last_fs, fine, last_cs, coarse, occupied = last
+                f.fine[last_fs], f.coarse[last_cs], f.occupied[last_cs] = fine, coarse, occupied
+                new_cells = cells[len(before):]
+            a, b, dev, first = f._chords(pts[start:])
             kern = _stamp_kernels()
-            kern.stamp_chords(f.fine, f.fine_lo, h, a, b, dev, f.radius_mm, f.step_mm, FINE_LEVELS, FIELD_SLACK_MM)
-            kern.stamp_coarse(f.coarse, f.occupied, f.coarse_lo, cells, f._kernel[0], f._kernel[1])
+            kern.stamp_chords(f.fine, f.fine_lo, h, a[:-1], b[:-1], dev[:-1], f.radius_mm, f.step_mm, FINE_LEVELS,
+                              FIELD_SLACK_MM)
+            fine = f.fine[fs].copy()
+            kern.stamp_chords(f.fine, f.fine_lo, h, a[-1:], b[-1:], dev[-1:], f.radius_mm, f.step_mm, FINE_LEVELS,
+                              FIELD_SLACK_MM)
+            kern.stamp_coarse(f.coarse, f.occupied, f.coarse_lo, new_cells, f._kernel[0], f._kernel[1])
+            f._overlaid = (f._version, pts.copy(), start + int(first[-1]), fs, fine, cs, f.coarse[cs].copy(),
+                           f.occupied[cs].copy())
             if f._tensors and any(k != "cpu" for k in f._tensors):
                 f._dirty += [("fine", fs), ("coarse", cs)]
             return f
@@ -811,13 +847,14 @@ def _coarse_kernel(cell_mm: float, radius_mm: float) -> tuple[np.ndarray, np.nda
 
 
 def _chords_py(pts, link, tol, max_points, max_len):  # pragma: no cover - compiled
-    """Chords through runs of linked points: (a (k, 3), b (k, 3), deviation (k,)). Every point and
-    every segment between linked points lies within the deviation of its chord; an unlinked point
-    is a chord of length 0."""
+    """Chords through runs of linked points: (a (k, 3), b (k, 3), deviation (k,), index of each
+    chord's first point (k,)). Every point and every segment between linked points lies within
+    the deviation of its chord; an unlinked point is a chord of length 0."""
     n = pts.shape[0]
     a = np.empty((n, 3))
     b = np.empty((n, 3))
     dev = np.zeros(n)
+    first = np.zeros(n, dtype=np.int64)
     c = 0
     s = 0
     while s < n:
@@ -853,12 +890,13 @@ def _chords_py(pts, link, tol, max_points, max_len):  # pragma: no cover - compi
         a[c] = pts[s]
         b[c] = pts[e]
         dev[c] = best
+        first[c] = s
         c += 1
         if e == s or not link[e - 1] or e + 1 >= n or not link[e]:
             s = e + 1
         else:
             s = e
-    return a[:c], b[:c], dev[:c]
+    return a[:c], b[:c], dev[:c], first[:c]
 
 
 def _stamp_chords_py(grid, lo, h, a, b, dev, radius, step, levels, slack):  # pragma: no cover - compiled
