@@ -357,13 +357,17 @@ class PathChecker:
         r = self.checker.bead_radius_mm
         ends = np.cumsum(counts)
         parts, seqs, radii = [], [], []
-        for j, row in enumerate(di):
+        done = 0  # pend[:done] is placed
+        # The looping moves (few) in laying order; the runs of ordinary moves between them are
+        # taken whole.
+        for j in np.flatnonzero(np.isin(di, np.fromiter(loops, dtype=np.int64, count=len(loops)))):
             a, b = ends[j] - counts[j], ends[j]
-            got = loops.get(int(row))
-            if got is None:
-                parts.append(pend[a:b]), seqs.append(pend_seq[a:b]), radii.append(np.full(b - a, r))
-            else:
-                parts.append(got[0]), seqs.append(got[1]), radii.append(got[2])
+            got = loops[int(di[j])]
+            parts += [pend[done:a], got[0]]
+            seqs += [pend_seq[done:a], got[1]]
+            radii += [np.full(a - done, r), got[2]]
+            done = b
+        parts.append(pend[done:]), seqs.append(pend_seq[done:]), radii.append(np.full(len(pend) - done, r))
         return np.concatenate(parts), np.concatenate(seqs), np.concatenate(radii)
 
     def _ploughing(self, moves: Moves, ws: np.ndarray, rows: np.ndarray) -> np.ndarray:
