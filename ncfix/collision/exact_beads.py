@@ -460,7 +460,8 @@ class BeadBuckets:
             cell *= 2.0
         self.lo, self.cell = lo, cell
         self.dims = (np.floor(extent / cell) + 1).astype(np.int64)
-        self.beads = np.ascontiguousarray(beads[self.index])
+        # Rows are gathered with np.take: the same copy as fancy indexing, several times faster.
+        self.beads = np.take(beads, self.index, axis=0)
         self.seq = np.ascontiguousarray(np.asarray(seq, dtype=np.int64)[self.index])
         radii = np.asarray(radii, dtype=np.float64)
         self.radii = np.ascontiguousarray(np.broadcast_to(radii, (len(beads),))[self.index] if radii.ndim else
@@ -474,7 +475,7 @@ class BeadBuckets:
         counts = (ends[1:] - ends[:-1])[order]
         self.chunk_first = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         members = np.arange(len(self.beads)) + np.repeat(ends[order] - self.chunk_first[:-1], counts)
-        self.chunk_beads = np.ascontiguousarray(self.beads[members])
+        self.chunk_beads = np.take(self.beads, members, axis=0)
         self.chunk_bseq = np.ascontiguousarray(self.seq[members])
         self.chunk_radii = np.ascontiguousarray(self.radii[members])
         # How far a chunk's beads lie from the middle of its segment, at most.

@@ -309,6 +309,17 @@ class PathChecker:
         P, N, _ = self.forward(self.normalise(words), moves.tcp[row])
         return P.reshape(len(rows), samples + 1, 3), N.reshape(len(rows), samples + 1, 3), t
 
+    def _tip_paths(self, moves: Moves, ws, rows: np.ndarray, samples: list[int]) -> list:
+        """``_tip_path`` of each move ``rows`` (k,) with its own number of steps ``samples`` (k,),
+        the poses of all in one batch: [(P (samples + 1, 3), t (samples + 1,)), ...]."""
+        ts = [np.arange(s + 1) / s for s in samples]
+        counts = np.array([len(t) for t in ts], dtype=np.int64)
+        row = np.repeat(rows, counts)
+        words = self._along(moves, ws, moves.w_end, row, np.concatenate(ts) if ts else np.zeros(0),
+                            np.zeros(len(moves), dtype=bool))
+        P, _, _ = self.forward(self.normalise(words), moves.tcp[row])
+        return list(zip(np.split(P, np.cumsum(counts)[:-1]), ts))
+
     def _looping_beads(self, moves: Moves, ws, Ps, Pe, rows, m, first, seq0) -> dict:
         """Beads of the depositing moves ``rows`` whose tip runs a path LOOP_RATIO or more longer
         than the programmed one (TCP off, the axes interpolated linearly: a C flip near the pole):
@@ -327,17 +338,27 @@ class PathChecker:
         P, _, _ = self._tip_path(moves, ws, rows, LOOP_PROBE)
         probe = np.linalg.norm(np.diff(P, axis=1), axis=2).sum(axis=1)
         loop = (chord > 0) & (probe > LOOP_RATIO * chord)
+        if not loop.any():
+            return {}
+        # The tip paths of the looping moves, then the strands' beads, each in one batch of poses
+        # (a pose does not depend on the others of its batch).
+        paths = self._tip_paths(moves, ws, rows[loop], [loop_samples(rough) for rough in probe[loop]])
+        strands = []
+        for row, c, (P, t) in zip(rows[loop], chord[loop], paths):
+            got = strand_along(P, t, c, shape, 0.5 * self.pitch_mm)
+            if got is not None:
+                strands.append((row, got))
+        if not strands:
+            return {}
+        row_b = np.concatenate([np.full(len(got[0]), row) for row, got in strands])
+        bw = self._along(moves, ws, moves.w_end, row_b, np.concatenate([got[0] for _, got in strands]),
+                         np.zeros(len(moves), dtype=bool))
+        pb_all, nb_all, _ = self.forward(self.normalise(bw), moves.tcp[row_b])
+        ends = np.cumsum([len(got[0]) for _, got in strands])
         out = {}
-        for row, c, rough in zip(rows[loop], chord[loop], probe[loop]):
-            P, _, t = self._tip_path(moves, ws, np.array([row]), loop_samples(rough))
-            got = strand_along(P[0], t, c, shape, 0.5 * self.pitch_mm)
-            if got is None:
-                continue
-            tb, r, drop = got
-            row_b = np.full(len(tb), row)
-            bw = self._along(moves, ws, moves.w_end, row_b, tb, np.zeros(len(moves), dtype=bool))
-            pb, nb, _ = self.forward(self.normalise(bw), moves.tcp[row_b])
-            beads = pb - drop * nb
+        for (row, (tb, r, drop)), b in zip(strands, ends):
+            a = b - len(tb)
+            beads = pb_all[a:b] - drop * nb_all[a:b]
             if held_radius(r, beads, ck.bead_radius_mm) >= ck.bead_radius_mm:  # laid as the stated bead
                 continue
             middle = self._along(moves, ws, moves.w_end, np.array([row]), np.array([0.5]),
@@ -357,13 +378,17 @@ class PathChecker:
         r = self.checker.bead_radius_mm
         ends = np.cumsum(counts)
         parts, seqs, radii = [], [], []
-        for j, row in enumerate(di):
+        done = 0  # pend[:done] is placed
+        # The looping moves (few) in laying order; the runs of ordinary moves between them are
+        # taken whole.
+        for j in np.flatnonzero(np.isin(di, np.fromiter(loops, dtype=np.int64, count=len(loops)))):
             a, b = ends[j] - counts[j], ends[j]
-            got = loops.get(int(row))
-            if got is None:
-                parts.append(pend[a:b]), seqs.append(pend_seq[a:b]), radii.append(np.full(b - a, r))
-            else:
-                parts.append(got[0]), seqs.append(got[1]), radii.append(got[2])
+            got = loops[int(di[j])]
+            parts += [pend[done:a], got[0]]
+            seqs += [pend_seq[done:a], got[1]]
+            radii += [np.full(a - done, r), got[2]]
+            done = b
+        parts.append(pend[done:]), seqs.append(pend_seq[done:]), radii.append(np.full(len(pend) - done, r))
         return np.concatenate(parts), np.concatenate(seqs), np.concatenate(radii)
 
     def _ploughing(self, moves: Moves, ws: np.ndarray, rows: np.ndarray) -> np.ndarray:

@@ -83,9 +83,14 @@ def ploughing_moves(triangles: np.ndarray, start_mm: np.ndarray, end_mm: np.ndar
     back = -d[rows] / length[rows, None]  # from the tip at the end back to where the move began
     ok = np.ones(len(rows), dtype=bool)
     for r in (r_start, r_end):
-        u = np.ascontiguousarray(np.einsum("nji,nj->ni", r[rows], back))  # into the head frame: Rᵀ·u
-        inside = np.empty(len(rows), dtype=bool)
-        _segments_inside(tris, u, np.ascontiguousarray(length[rows]), inside)
-        ok &= inside
+        u = np.einsum("nji,nj->ni", r[rows], back)  # into the head frame: Rᵀ·u
+        # Only the segments still inside at the other orientation are tested (most are not: the
+        # test runs over every triangle for them, twice).
+        live = np.flatnonzero(ok)
+        if len(live) == 0:
+            break
+        inside = np.empty(len(live), dtype=bool)
+        _segments_inside(tris, np.ascontiguousarray(u[live]), np.ascontiguousarray(length[rows][live]), inside)
+        ok[live] = inside
     out[rows] = ok
     return out

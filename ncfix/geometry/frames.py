@@ -43,7 +43,13 @@ def axis_rotation(axis: np.ndarray, angle_rad: np.ndarray) -> np.ndarray:
     a = np.asarray(angle_rad, dtype=np.float64)
     c, s = np.cos(a), np.sin(a)
     k = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
-    return c[:, None, None] * np.eye(3) + s[:, None, None] * k + (1.0 - c)[:, None, None] * np.outer(u, u)
+    out = np.empty((len(c), 3, 3))
+    from ncfix.geometry import rodrigues  # compiled (see rotation_between)
+
+    # c·I + s·K + (1 − c)·uuᵀ per angle, in one compiled pass: the poses ask for it thousands of
+    # times a run, where the broadcast expression's temporaries cost more than the sums.
+    rodrigues.about_axis(np.ascontiguousarray(c), np.ascontiguousarray(s), np.eye(3), k, np.outer(u, u), out)
+    return out
 
 
 def minimal_rotation(n: np.ndarray) -> np.ndarray:

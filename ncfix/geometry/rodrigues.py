@@ -40,3 +40,17 @@ def _rotations(a, b, out):  # pragma: no cover - compiled
 
 
 rotations = njit(cache=True, nogil=True)(_rotations)
+
+
+def _about_axis(c, s, eye, k, uu, out):  # pragma: no cover - compiled
+    """out[i] = c[i]·I + s[i]·K + (1 − c[i])·uuᵀ (``frames.axis_rotation``), each entry summed in
+    that order, as the broadcast numpy expression does: the same numbers, in one pass."""
+    for i in range(c.shape[0]):
+        ci, si = c[i], s[i]
+        oc = 1.0 - ci
+        for r in range(3):
+            for q in range(3):
+                out[i, r, q] = (ci * eye[r, q] + si * k[r, q]) + oc * uu[r, q]
+
+
+about_axis = njit(cache=True, nogil=True)(_about_axis)
