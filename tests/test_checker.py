@@ -422,8 +422,8 @@ def test_overlays_of_a_growing_chain_stamp_as_a_fresh_overlay_would():
             reference.add(extra)
             continue
         pts = chain[step[0]:step[1]]
-        hits += field._overlaid is not None and len(field._overlaid[1]) <= len(pts) and \
-            np.array_equal(field._overlaid[1], pts[:len(field._overlaid[1])])
+        hits += field._overlaid is not None and len(field._overlaid[0]) <= len(pts) and \
+            np.array_equal(field._overlaid[0], pts[:len(field._overlaid[0])])
         reference._overlaid = None  # every point stamped
         before = field.fine.copy(), field.coarse.copy(), field.occupied.copy(), field.box.copy(), field.count
         with field.overlay(pts), reference.overlay(pts):

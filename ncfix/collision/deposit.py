@@ -525,8 +525,8 @@ class BeadField:
         self._tensors: dict = {}
         self._dirty: list[tuple[str, tuple[slice, ...]]] = []
         self._kernel = _coarse_kernel(self.coarse_mm, self.radius_mm)
-        self._version = 0  # bumped whenever the grids change for good (``_changed``)
-        # The last overlay's points and its grids before its last chord (``_Overlay``), or None.
+        # The last overlay's points and its grids before its last chord (``_Overlay``), or None
+        # once the grids changed for good (``_changed``).
         self._overlaid: tuple | None = None
         # Material this field no longer holds (``crop``: the store's retired beads), bounded by a
         # field of its own: ``lower_bound`` is the smaller of the two.
@@ -570,7 +570,6 @@ class BeadField:
 
     def _changed(self) -> None:
         """The grids' content or placement changed for good (``overlay``'s stamps no longer apply)."""
-        self._version += 1
         self._overlaid = None
 
     def _fine_reach(self) -> float:
@@ -670,9 +669,8 @@ class BeadField:
             f.count += len(pts)
             start, new_cells = 0, cells
             last = f._overlaid
-            if last is not None and last[0] == f._version and len(last[1]) <= len(pts) \
-                    and np.array_equal(last[1], pts[:len(last[1])]):
-                _, before, start, last_fs, fine, last_cs, coarse, occupied = last
+            if last is not None and len(last[0]) <= len(pts) and np.array_equal(last[0], pts[:len(last[0])]):
+                before, start, last_fs, fine, last_cs, coarse, occupied = last
                 f.fine[last_fs], f.coarse[last_cs], f.occupied[last_cs] = fine, coarse, occupied
                 new_cells = cells[len(before):]
             a, b, dev, first = f._chords(pts[start:])
@@ -683,7 +681,7 @@ class BeadField:
             kern.stamp_chords(f.fine, f.fine_lo, h, a[-1:], b[-1:], dev[-1:], f.radius_mm, f.step_mm, FINE_LEVELS,
                               FIELD_SLACK_MM)
             kern.stamp_coarse(f.coarse, f.occupied, f.coarse_lo, new_cells, f._kernel[0], f._kernel[1])
-            f._overlaid = (f._version, pts.copy(), start + int(first[-1]), fs, fine, cs, f.coarse[cs].copy(),
+            f._overlaid = (pts.copy(), start + int(first[-1]), fs, fine, cs, f.coarse[cs].copy(),
                            f.occupied[cs].copy())
             if f._tensors and any(k != "cpu" for k in f._tensors):
                 f._dirty += [("fine", fs), ("coarse", cs)]

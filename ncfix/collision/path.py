@@ -300,23 +300,19 @@ class PathChecker:
                 pend, pend_seq, radii = self._with_loops(pend, pend_seq, di, counts, loops)
         return pend, pend_seq, radii
 
-    def _tip_path(self, moves: Moves, ws, rows: np.ndarray, samples: int):
-        """P at ``samples`` + 1 even steps of t along each move ``rows`` (k,), as the controller
-        moves (linear in the words): (P (k, samples + 1, 3), N (k, samples + 1, 3), t (samples + 1,))."""
-        t = np.arange(samples + 1) / samples
-        row = np.repeat(rows, samples + 1)
-        words = self._along(moves, ws, moves.w_end, row, np.tile(t, len(rows)), np.zeros(len(moves), dtype=bool))
-        P, N, _ = self.forward(self.normalise(words), moves.tcp[row])
-        return P.reshape(len(rows), samples + 1, 3), N.reshape(len(rows), samples + 1, 3), t
+    def _linear_words(self, moves: Moves, ws, row: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """The words at fractions ``t`` along the moves ``row`` (both (q,)), as the controller
+        moves with TCP off (linear in the words)."""
+        return self._along(moves, ws, moves.w_end, row, t, np.zeros(len(moves), dtype=bool))
 
     def _tip_paths(self, moves: Moves, ws, rows: np.ndarray, samples: list[int]) -> list:
-        """``_tip_path`` of each move ``rows`` (k,) with its own number of steps ``samples`` (k,),
-        the poses of all in one batch: [(P (samples + 1, 3), t (samples + 1,)), ...]."""
+        """P at ``samples[i]`` + 1 even steps of t along each move ``rows[i]`` (``_linear_words``),
+        the poses of all in one batch (a pose does not depend on the others of its batch):
+        [(P (samples + 1, 3), t (samples + 1,)), ...]."""
         ts = [np.arange(s + 1) / s for s in samples]
         counts = np.array([len(t) for t in ts], dtype=np.int64)
         row = np.repeat(rows, counts)
-        words = self._along(moves, ws, moves.w_end, row, np.concatenate(ts) if ts else np.zeros(0),
-                            np.zeros(len(moves), dtype=bool))
+        words = self._linear_words(moves, ws, row, np.concatenate(ts) if ts else np.zeros(0))
         P, _, _ = self.forward(self.normalise(words), moves.tcp[row])
         return list(zip(np.split(P, np.cumsum(counts)[:-1]), ts))
 
@@ -335,13 +331,12 @@ class PathChecker:
         if shape is None or len(rows) == 0:
             return {}
         chord = np.linalg.norm(Pe[rows] - Ps[rows], axis=1)
-        P, _, _ = self._tip_path(moves, ws, rows, LOOP_PROBE)
+        P = np.stack([P for P, _ in self._tip_paths(moves, ws, rows, [LOOP_PROBE] * len(rows))])
         probe = np.linalg.norm(np.diff(P, axis=1), axis=2).sum(axis=1)
         loop = (chord > 0) & (probe > LOOP_RATIO * chord)
         if not loop.any():
             return {}
-        # The tip paths of the looping moves, then the strands' beads, each in one batch of poses
-        # (a pose does not depend on the others of its batch).
+        # The tip paths of the looping moves, then the strands' beads, each in one batch of poses.
         paths = self._tip_paths(moves, ws, rows[loop], [loop_samples(rough) for rough in probe[loop]])
         strands = []
         for row, c, (P, t) in zip(rows[loop], chord[loop], paths):
@@ -351,8 +346,7 @@ class PathChecker:
         if not strands:
             return {}
         row_b = np.concatenate([np.full(len(got[0]), row) for row, got in strands])
-        bw = self._along(moves, ws, moves.w_end, row_b, np.concatenate([got[0] for _, got in strands]),
-                         np.zeros(len(moves), dtype=bool))
+        bw = self._linear_words(moves, ws, row_b, np.concatenate([got[0] for _, got in strands]))
         pb_all, nb_all, _ = self.forward(self.normalise(bw), moves.tcp[row_b])
         ends = np.cumsum([len(got[0]) for _, got in strands])
         out = {}
@@ -361,8 +355,7 @@ class PathChecker:
             beads = pb_all[a:b] - drop * nb_all[a:b]
             if held_radius(r, beads, ck.bead_radius_mm) >= ck.bead_radius_mm:  # laid as the stated bead
                 continue
-            middle = self._along(moves, ws, moves.w_end, np.array([row]), np.array([0.5]),
-                                 np.zeros(len(moves), dtype=bool))
+            middle = self._linear_words(moves, ws, np.array([row]), np.array([0.5]))
             step = min(0.5 * self.pitch_mm, max(r, LOOP_SPACING_MIN * 0.5 * self.pitch_mm))
             lowered, taut = strand_at_rest(beads, self.kin.vertical(self.normalise(middle))[0], step)
             beads = np.concatenate([lowered, taut])
