@@ -137,27 +137,33 @@ def test_bead_cells_find_every_bead_within_the_ball():
     assert len(empty.take()[0]) == 0 and len(empty.gather(np.zeros(3), 10.0)[0]) == 0
 
 
-def test_store_near_gives_each_levels_ball_query_in_its_order():
-    """``BeadStore.near`` gives, level by level, exactly what each level's k-d tree's ball query
-    gives, in its order (the EPA strategy keeps the first bead of each cell in that order): balls
-    that cut the levels, hold some whole (no query then) or all, or end at a box's far corner."""
+def test_store_near_gives_the_ball_in_laying_order_whatever_the_levels():
+    """``BeadStore.near`` gives, level by level, exactly the centres each level's k-d tree's ball
+    query finds, in laying order (the EPA strategy keeps the first bead of each cell): balls that
+    cut the levels, hold some whole (no query then) or all, or end at a box's far corner. Joined,
+    they are the same for a store queried between its adds, whose levels are other ones."""
     from ncfix.collision.deposit import BeadStore
 
     rng = np.random.default_rng(12)
     t = np.linspace(0.0, 30.0 * np.pi, 9000)
     beads = np.column_stack([50.0 * np.cos(t), 25.0 * np.sin(t), t / 6.0]) + rng.normal(0.0, 0.1, (len(t), 3))
-    store = BeadStore(1.0, exact_max=8000)
+    store, queried = BeadStore(1.0, exact_max=8000), BeadStore(1.0, exact_max=8000)
     for part in np.array_split(beads, 7):
         store.add(part)
+        for half in np.array_split(part, 2):
+            queried.add(half)
+            queried.near(half[0], 1.0)  # closes its open beads into a level
     levels = store.trees()
     assert len(levels) >= 3
+    assert [len(pts) for _, pts in queried.trees()] != [len(pts) for _, pts in levels]
     wholes = 0
     for c in (np.zeros(3), np.array([40.0, -10.0, 5.0]), np.array([-30.0, 20.0, 12.0])):
         far = max(float(np.linalg.norm(np.maximum(np.abs(tree.mins - c), np.abs(tree.maxes - c)))) for tree, _ in levels)
         for r in (3.0, 20.0, 45.0, far, far + 1e-6, far + 30.0):
             got = store.near(c, r)
-            want = [pts[np.asarray(tree.query_ball_point(c, r), dtype=np.int64)] for tree, pts in levels]
+            want = [pts[np.sort(np.asarray(tree.query_ball_point(c, r), dtype=np.int64))] for tree, pts in levels]
             assert len(got) == len(want) and all(np.array_equal(a, b) for a, b in zip(got, want))
+            assert np.array_equal(np.concatenate(got), np.concatenate(queried.near(c, r)))
             wholes += sum(len(g) == len(pts) for g, (_, pts) in zip(got, levels))
     assert wholes >= 3 * len(levels)
 

@@ -265,7 +265,7 @@ class BeadStore:
         self.exact_max = int(exact_max if exact_max is not None else EXACT_BEADS_MAX)
         self.level_max = max(1, self.exact_max // 4)
         # [points (m, 3) float64 in laying order, cKDTree or None, {cell mm: BeadCells},
-        #  the points in the tree's order or None (``near``)], oldest first
+        #  their radii (m,) or None (all ``radius_mm``)], oldest first
         self._levels: list[list] = []
         self._open: list[np.ndarray] = []  # beads not in a level yet (newest)
         self._open_r: list[np.ndarray | None] = []  # their radii (None: all ``radius_mm``)
@@ -325,9 +325,9 @@ class BeadStore:
         while self._levels and len(self._levels[-1][0]) <= len(pts) and \
                 len(self._levels[-1][0]) + len(pts) <= self.level_max:
             level = self._levels.pop()
-            radii = self._radii([level[0], pts], [level[4], radii])
+            radii = self._radii([level[0], pts], [level[3], radii])
             pts = np.concatenate([level[0], pts])
-        self._levels.append([pts, None, {}, None, radii])
+        self._levels.append([pts, None, {}, radii])
 
     def _radii(self, parts: list[np.ndarray], radii: list[np.ndarray | None]) -> np.ndarray | None:
         """The radii of the beads of ``parts`` joined (None when every one is ``radius_mm``)."""
@@ -339,7 +339,7 @@ class BeadStore:
         """Every exact bead (m, 3), oldest first, and its radius (m,) (None: all ``radius_mm``)."""
         self._close()
         pts = [level[0] for level in self._levels]
-        radii = self._radii(pts, [level[4] for level in self._levels])
+        radii = self._radii(pts, [level[3] for level in self._levels])
         return (np.concatenate(pts) if pts else np.zeros((0, 3))), radii
 
     def _retire(self) -> None:
@@ -373,10 +373,11 @@ class BeadStore:
         return [(level[1], level[0]) for level in self._levels]
 
     def near(self, centre_mm: np.ndarray, radius_mm: float) -> list[np.ndarray]:
-        """Per exact level, oldest first: its centres within ``radius_mm`` of the point, in the
-        order of its tree's ball query (``cKDTree.query_ball_point``). A ball that holds a tree's
-        whole box (with a margin for rounding) gets every centre without a query, in the order
-        the query would visit them: its leaves in turn, the tree's ``indices``."""
+        """Per exact level, oldest first: its centres within ``radius_mm`` of the point, in laying
+        order. Joined, they are in laying order whatever the levels are: the levels depend on when
+        the store was queried (``_close``), and a caller that keeps the first of each cell (the
+        epa strategy's beads) must not (ball queries return a tree's own order). A ball that holds
+        a level's whole box (with a margin for rounding) gets all its centres without a query."""
         centre = np.asarray(centre_mm, dtype=np.float64).reshape(3)
         self.trees()  # built where missing
         out = []
@@ -384,12 +385,10 @@ class BeadStore:
             pts, tree = level[0], level[1]
             corner = np.maximum(np.abs(tree.mins - centre), np.abs(tree.maxes - centre))
             if float(corner @ corner) < radius_mm * radius_mm * (1.0 - 1e-9):
-                if level[3] is None:
-                    level[3] = pts[tree.indices]
-                out.append(level[3])
+                out.append(pts)
             else:
-                found = tree.query_ball_point(centre, radius_mm)
-                out.append(pts[np.asarray(found, dtype=np.int64)])
+                found = np.sort(np.asarray(tree.query_ball_point(centre, radius_mm), dtype=np.int64))
+                out.append(pts[found])
         return out
 
     def cells(self, cell_mm: float) -> list["BeadCells"]:
@@ -399,7 +398,7 @@ class BeadStore:
         out = []
         for level in self._levels:
             if cell_mm not in level[2]:
-                level[2][cell_mm] = BeadCells(level[0], cell_mm, level[4])
+                level[2][cell_mm] = BeadCells(level[0], cell_mm, level[3])
             out.append(level[2][cell_mm])
         return out
 
@@ -407,8 +406,8 @@ class BeadStore:
     def nbytes(self) -> int:
         fields = sum(f.nbytes for f in (self._field, self.old) if f is not None)
         exact = sum(p.nbytes * (2 if tree is not None else 1) + sum(c.nbytes for c in cells.values())
-                    + (ordered.nbytes if ordered is not None else 0) + (radii.nbytes if radii is not None else 0)
-                    for p, tree, cells, ordered, radii in self._levels) + self._open_n * 24
+                    + (radii.nbytes if radii is not None else 0)
+                    for p, tree, cells, radii in self._levels) + self._open_n * 24
         return int(exact + fields)
 
     # -- queries -----------------------------------------------------------------------------

@@ -219,7 +219,9 @@ class CorrectStage:
     so is every row whose head (the deposit tree's balls, at every sample and at the sweep start)
     came within its reach of a bead those moves laid, before or after the change (``_forget``). The
     rest keeps its result: the next detection checks only the runs of rows it cannot reuse, each
-    with the pending beads of the rows before it (``PathChecker.check`` ``prior``). Beads the store
+    with the pending beads of the rows before it (``PathChecker.check`` ``prior``); past an episode
+    it has seen whole (``_closed``), the stale rows wait for it to be solved, since it may make
+    them stale again (``_detect``). Beads the store
     retires change what every row sees: nothing is reused across that. A strategy's re-checks of
     one episode reuse each other's results by the same rule (``Rechecks``).
     """
@@ -358,8 +360,9 @@ class CorrectStage:
             n = len(self.rows)
             span_end = min(n, self.final + max(self.window, 2 * self.gap))
             while True:
-                hits = self._detect(self.final, span_end)
-                colliding = self.final + np.nonzero(hits.any)[0]
+                hits, known = self._detect(self.final, span_end)
+                span_end = known  # rows past ``known`` wait for the episode before them (``_detect``)
+                colliding = self.final + np.nonzero(hits.any[:known - self.final])[0]
                 if len(colliding) == 0:
                     if span_end == n:
                         self._commit(n if end else max(self.final, n - self.ramp))
@@ -389,15 +392,20 @@ class CorrectStage:
                 self._commit(last + 1)
                 break
 
-    def _detect(self, a: int, b: int) -> MoveHits:
-        """Detection of rows a..b-1: the rows whose result cannot be reused are checked (runs of
-        them, each with the pending beads of the rows a.. before it), the others keep theirs."""
+    def _detect(self, a: int, b: int) -> tuple[MoveHits, int]:
+        """Detection of rows a..b-1 and ``known``: rows a..known-1 have a current result. The
+        rows whose result cannot be reused are checked in order (runs of them, each with the
+        pending beads of the rows a.. before it); the others keep theirs. Past an episode seen
+        whole (``_closed``), a run of rows detected before (stale since) waits: that episode is
+        solved first, and its beads may make those rows stale again, so they are checked once,
+        when detection reaches them. Rows never detected are checked (``_forget`` needs their
+        poses to note the beads that move near them)."""
         if not self.REUSE_DETECTION:
             hits, _ = self.path.check(self.moves(a, b), self.store, 0, commit=False)
             self.samples += hits.samples
             self.checked_rows += b - a
             self._remember(a, b, hits)  # the poses, for ``_forget``'s note of moved beads
-            return hits
+            return hits, b
         d = self.detected
         if self.store.retired != self.retired_seen:  # the beads every row sees changed
             d.valid[:] = False
@@ -407,8 +415,13 @@ class CorrectStage:
         d.valid[a:b] = ok
         prior, covered = [], a  # pending beads of rows a .. covered-1
         samples = 0
+        known = b
         for s, e in _runs(~ok, MERGE_GAP):
             s, e = a + s, a + e
+            if known == b and self._closed(a, s):
+                known = s
+            if known < b and all(p is not None for p in d.poses[s:e]):
+                continue
             if s > covered:
                 if self.checker.bead_radius_mm > 0:
                     prior.append(self.path.bead_points(self.moves(covered, s), radii=True))
@@ -423,7 +436,23 @@ class CorrectStage:
         n = b - a
         sample = np.where(d.has_sample[a:b], np.arange(n), -1)
         return MoveHits(d.part_hit[a:b].copy(), d.deposit_hit[a:b].copy(), d.deposit_clearance[a:b].copy(),
-                        sample, d.C[a:b].copy(), d.R[a:b].copy(), samples)
+                        sample, d.C[a:b].copy(), d.R[a:b].copy(), samples), known
+
+    def _closed(self, a: int, s: int) -> bool:
+        """Whether rows a..s-1 (every one with a current result) hold a whole episode: a colliding
+        row whose chain of colliding rows (each at most ``gap`` after the one before, as
+        ``_advance`` chains them) ends ``gap`` or more rows before s. ``_advance`` then finds the
+        same episode, whatever the rows from s on hold."""
+        d = self.detected
+        colliding = a + np.nonzero(d.part_hit[a:s].any(axis=1) | d.deposit_hit[a:s])[0]
+        if not len(colliding):
+            return False
+        e = int(colliding[0])
+        for c in colliding[1:]:
+            if c - e > self.gap:
+                break
+            e = int(c)
+        return e + self.gap < s
 
     def _detecting(self, a: int, b: int):
         """A progress hook for the detection of rows a..b-1: it moves the bar over the first half
