@@ -7,8 +7,9 @@ the cut: the output is the same for any number of threads (``tests/test_split.py
 
 Runs are smaller than a thread's share (``RUNS_PER_THREAD`` a thread) so that the few costly poses
 of a batch (those in contact, which reach the exact tests) do not hold one thread while the others
-wait. ``$NCFIX_THREADS`` sets the number of threads (1: everything in the calling thread); the
-default is the number of cores this process may run on.
+wait. Work cut some other way (the bead field's stamp, cut into slabs of its grid where its
+chords lie) goes through ``map_parts``. ``$NCFIX_THREADS`` sets the number of threads (1:
+everything in the calling thread); the default is the number of cores this process may run on.
 """
 
 from __future__ import annotations
@@ -63,6 +64,48 @@ def runs(n: int, threads: int) -> list[tuple[int, int]]:
     count = min(threads * RUNS_PER_THREAD, n // MIN_RUN)
     edges = [n * i // count for i in range(count + 1)]
     return [(edges[i], edges[i + 1]) for i in range(count)]
+
+
+def map_parts(call, parts: list, threads: int) -> list:
+    """[call(*part) for part in parts], in order, for work the caller cuts itself (``runs`` cuts a
+    batch into equal runs of poses). The calling thread and up to ``threads`` - 1 of the pool's
+    take the parts in turn, each the next one not taken yet when it is free, and the call returns
+    once every part is done: a pool thread that does not get a core soon (a shared machine) holds
+    up only a part it took, not the others, and with no core free the calling thread does them
+    all. The first error a part raised is raised once every part is done."""
+    if len(parts) <= 1 or threads <= 1:
+        return [call(*part) for part in parts]
+    n = len(parts)
+    out: list = [None] * n
+    errors: list[BaseException] = []
+    order = iter(range(n))
+    lock = threading.Lock()
+    done = [0]
+    finished = threading.Event()
+
+    def work():
+        while True:
+            with lock:
+                i = next(order, None)
+            if i is None:
+                return
+            try:
+                out[i] = call(*parts[i])
+            except BaseException as exc:  # noqa: BLE001 - raised in the calling thread below
+                errors.append(exc)
+            with lock:
+                done[0] += 1
+                if done[0] == n:
+                    finished.set()
+
+    pool = _executor(threads)
+    for _ in range(min(threads, n) - 1):
+        pool.submit(work)  # one that starts after the parts are all taken returns at once
+    work()
+    finished.wait()
+    if errors:
+        raise errors[0]
+    return out
 
 
 def map_runs(call, n: int) -> list:
