@@ -128,18 +128,22 @@ class Episode:
         r = self.stage.rows
         return r.programmed[self.first - 1] if self.first > 0 else self.stage.prev_programmed
 
-    def _programmed_beads(self):
-        stage = self.stage
-        pts, seq = [], []
-        for i, row in enumerate(self.rows):
-            moves = stage.moves(int(row), int(row) + 1)
-            moves.w_end = self.programmed[i:i + 1]
-            if i > 0:
-                moves.w_start = self.programmed[i - 1:i]
-            b = self.path.bead_points(moves)
-            pts.append(b)
-            seq.append(np.full(len(b), i, dtype=np.int64))
-        return np.concatenate(pts) if pts else np.zeros((0, 3)), np.concatenate(seq) if seq else np.zeros(0, np.int64)
+    def _programmed_beads(self) -> tuple[np.ndarray, np.ndarray]:
+        """The beads (m, 3) of the levels' programmed moves (the first from the row before as it
+        will be written), in laying order, and the level of each (m,): ``PathChecker.bead_points``
+        of all the moves in one batch (a move's beads do not depend on the others of its batch),
+        each move one sample long, so that a bead's sequence number is its move's index."""
+        moves = self.stage.moves(self.first, self.last + 1)
+        start = moves.w_start.copy()
+        start[1:] = self.programmed[:-1]
+        moves = Moves(start, self.programmed, moves.tcp, moves.known_start, moves.deposit, moves.arc)
+        path = self.path
+        ws = np.where(moves.known_start[:, None], moves.w_start, moves.w_end)
+        Ps, Ns, _ = path.forward(ws, moves.tcp)
+        Pe, Ne, _ = path.forward(moves.w_end, moves.tcp)
+        n = len(moves)
+        pts, seq, _ = path._beads(moves, ws, Ps, Pe, Ns, Ne, np.ones(n, dtype=np.int64), np.arange(n, dtype=np.int64), 0)
+        return pts, np.asarray(seq, dtype=np.int64)
 
     # -- the machine -----------------------------------------------------------------------------
     def point(self, level: np.ndarray, N: np.ndarray) -> np.ndarray:
