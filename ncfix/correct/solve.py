@@ -23,6 +23,7 @@ from ncfix.correct.candidates import SphereGrid, level_candidates, nearest
 from ncfix.correct.graph import LayeredGraph
 from ncfix.geometry.frames import angle_between_deg, minimal_rotation, turn_rotations
 from ncfix.kinematics.base import Unreachable
+from ncfix.kinematics.tool_vector import ToolVector
 
 if TYPE_CHECKING:
     from ncfix.config import Options
@@ -197,7 +198,8 @@ class Episode:
             return out
         idx = np.nonzero(ok)[0]
         lv = np.asarray(level)[idx]
-        P = self.path.forward(words[idx], self.tcp[lv])[0]
+        # A tool-vector machine's P is its XYZ words (``ToolVector.forward``): no rotations to compute.
+        P = words[idx, :3] if isinstance(self.kin, ToolVector) else self.path.forward(words[idx], self.tcp[lv])[0]
         C = P + self.h * (N[idx] / np.linalg.norm(N[idx], axis=1, keepdims=True))
         pts, seq = (self.bead_pts, self.bead_seq) if beads else (self.bead_pts[:0], self.bead_seq[:0])
         out[idx] = self.checker.poses_free(C, R[idx], lv.astype(np.int64), self.stage.store, pts, seq)
