@@ -239,3 +239,39 @@ def test_a_recheck_that_ignores_the_moved_beads_would_miss_them(monkeypatch, box
     _fix(_program(), box)
     (_, _, _, _), (shifted, fresh_shifted, _, _) = probes[-1].probes[:2]
     assert not np.array_equal(shifted, fresh_shifted)
+
+
+class BeadsProbe:
+    """At each episode, an episode over both passes: its programmed beads and each one's level,
+    beside ``PathChecker.bead_points`` of each level's programmed move on its own (the first
+    from the row before as it will be written); leaves every episode as programmed."""
+
+    name = "beads-probe"
+
+    def __init__(self, options):
+        self.seen = []
+
+    def solve(self, ep):
+        stage = ep.stage
+        wide = solve.Episode(stage, ep.first, len(stage.rows) - 2, ep.colliding)
+        pts, seq = [], []
+        for i, row in enumerate(wide.rows):
+            moves = stage.moves(int(row), int(row) + 1)
+            moves.w_end = wide.programmed[i:i + 1]
+            if i > 0:
+                moves.w_start = wide.programmed[i - 1:i]
+            beads = wide.path.bead_points(moves)
+            pts.append(beads)
+            seq.append(np.full(len(beads), i, dtype=np.int64))
+        self.seen.append((wide.bead_pts, wide.bead_seq, np.concatenate(pts), np.concatenate(seq)))
+        return Solution(ep.programmed.copy(), [int(r) for r in ep.colliding])
+
+
+def test_an_episodes_programmed_beads_are_each_levels_own(monkeypatch, box):
+    """``Episode``'s beads, laid in one batch of moves, are each level's move's, level by level."""
+    made = _collect(monkeypatch, registry, "make_strategy", lambda _, options: BeadsProbe(options))
+    _fix(_program(), box)
+    assert made[-1].seen
+    for pts, seq, each, each_seq in made[-1].seen:
+        assert len(each) and len(np.unique(each_seq)) > 1
+        assert np.array_equal(pts, each) and np.array_equal(seq, each_seq)
