@@ -248,9 +248,9 @@ def test_a_recheck_that_ignores_the_moved_beads_would_miss_them(monkeypatch, box
 
 @pytest.mark.heavy
 def test_rows_made_stale_wait_for_detection_to_reach_them(monkeypatch, stages):
-    """A row an episode made stale is checked again when detection reaches it: detection stops at
-    the first stale run after a closed episode (``CorrectStage._closed``), since that episode's
-    beads may make the row stale again. On bathtub_273, whose episodes' beads reach rows of the
+    """A row an episode made stale is checked again when detection reaches it: past an episode seen
+    whole (``CorrectStage._closed``), stale rows wait for it to be solved, since its beads may
+    make them stale again. On bathtub_273, whose episodes' beads reach rows of the
     spiral's later turns, the fix then checks fewer rows than one that checks every stale row of
     the window after each episode, and writes the same program and report."""
     from pathlib import Path
@@ -273,3 +273,39 @@ def test_rows_made_stale_wait_for_detection_to_reach_them(monkeypatch, stages):
     assert report.summary["colliding_blocks_before"] > 50 and report.summary["changed_blocks"] > 50
     assert lazy_rows < eager_rows
     print(f"\nrows checked by detection: {lazy_rows}, {eager_rows} checking every stale row after each episode")
+
+
+class BeadsProbe:
+    """At each episode, an episode over both passes: its programmed beads and each one's level,
+    beside ``PathChecker.bead_points`` of each level's programmed move on its own (the first
+    from the row before as it will be written); leaves every episode as programmed."""
+
+    name = "beads-probe"
+
+    def __init__(self, options):
+        self.seen = []
+
+    def solve(self, ep):
+        stage = ep.stage
+        wide = solve.Episode(stage, ep.first, len(stage.rows) - 2, ep.colliding)
+        pts, seq = [], []
+        for i, row in enumerate(wide.rows):
+            moves = stage.moves(int(row), int(row) + 1)
+            moves.w_end = wide.programmed[i:i + 1]
+            if i > 0:
+                moves.w_start = wide.programmed[i - 1:i]
+            beads = wide.path.bead_points(moves)
+            pts.append(beads)
+            seq.append(np.full(len(beads), i, dtype=np.int64))
+        self.seen.append((wide.bead_pts, wide.bead_seq, np.concatenate(pts), np.concatenate(seq)))
+        return Solution(ep.programmed.copy(), [int(r) for r in ep.colliding])
+
+
+def test_an_episodes_programmed_beads_are_each_levels_own(monkeypatch, box):
+    """``Episode``'s beads, laid in one batch of moves, are each level's move's, level by level."""
+    made = _collect(monkeypatch, registry, "make_strategy", lambda _, options: BeadsProbe(options))
+    _fix(_program(), box)
+    assert made[-1].seen
+    for pts, seq, each, each_seq in made[-1].seen:
+        assert len(each) and len(np.unique(each_seq)) > 1
+        assert np.array_equal(pts, each) and np.array_equal(seq, each_seq)

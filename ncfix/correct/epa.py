@@ -155,23 +155,27 @@ class EpaModel:
         that moves the head out. Beads above the tip allowance are spheres, tested the same way
         against the head's hull clipped at the tip allowance plane. E = Σ w_i V_i with
         w_i = |V_i| / Σ|V_k|."""
-        c = np.asarray(C, dtype=np.float64).reshape(3)
-        r = np.asarray(R, dtype=np.float64).reshape(3, 3)
-        pose = coal.Transform3s(r, c)
+        c = np.ascontiguousarray(C, dtype=np.float64).reshape(3)
+        r = np.ascontiguousarray(R, dtype=np.float64).reshape(3, 3)
         vectors, bodies = [], []
-        for i in _pieces_met(self._head_points, c, r, self._piece_lo, self._piece_hi, self._head_normals,
-                             self._head_offsets, self._head_centre, self._piece_vertices, self._piece_vstart):
-            v = self._penetration(self._head, pose, self._pieces[i], self._identity)
-            if v is not None:
-                vectors.append(v)
-                if self._piece_names[i] not in bodies:
-                    bodies.append(self._piece_names[i])
+        met = _pieces_met(self._head_points, c, r, self._piece_lo, self._piece_hi, self._head_normals,
+                          self._head_offsets, self._head_centre, self._piece_vertices, self._piece_vstart)
+        if len(met):  # a walk's poses mostly meet a few pieces, or none: the pose only for those
+            pose = coal.Transform3s(r, c)
+            for i in met.tolist():
+                v = self._penetration(self._head, pose, self._pieces[i], self._identity)
+                if v is not None:
+                    vectors.append(v)
+                    if self._piece_names[i] not in bodies:
+                        bodies.append(self._piece_names[i])
         if beads_mm is not None and self._sphere is not None:
-            exits = self.bead_exits(c, r, self._beads_near(c, r, beads_mm))
-            exits = exits[np.linalg.norm(exits, axis=1) > _TINY]
-            if len(exits):
-                vectors.append(exits)
-                bodies.append("deposit")
+            near = self._beads_near(c, r, beads_mm)
+            if len(near):  # no bead near: no exit (``bead_exits`` of none is none)
+                exits = self.bead_exits(c, r, near)
+                exits = exits[np.linalg.norm(exits, axis=1) > _TINY]
+                if len(exits):
+                    vectors.append(exits)
+                    bodies.append("deposit")
         return _combine(vectors, bodies)
 
     def bead_exits(self, c: np.ndarray, r: np.ndarray, beads: np.ndarray) -> np.ndarray:
@@ -198,7 +202,7 @@ class EpaModel:
             return None
         contact = result.getContact(0)
         v = contact.penetration_depth * np.asarray(contact.normal, dtype=np.float64)
-        return v if np.linalg.norm(v) > _TINY else None
+        return v if math.sqrt(v.dot(v)) > _TINY else None  # ``np.linalg.norm`` of a vector, its call aside
 
     def _beads_near(self, c: np.ndarray, r: np.ndarray, beads_mm: np.ndarray) -> np.ndarray:
         """Bead centres (k, 3) whose sphere may reach the clipped hull: within every face plane

@@ -23,6 +23,7 @@ from ncfix.correct.candidates import SphereGrid, level_candidates, nearest
 from ncfix.correct.graph import LayeredGraph
 from ncfix.geometry.frames import angle_between_deg, minimal_rotation, turn_rotations
 from ncfix.kinematics.base import Unreachable
+from ncfix.kinematics.tool_vector import ToolVector
 
 if TYPE_CHECKING:
     from ncfix.config import Options
@@ -128,18 +129,22 @@ class Episode:
         r = self.stage.rows
         return r.programmed[self.first - 1] if self.first > 0 else self.stage.prev_programmed
 
-    def _programmed_beads(self):
-        stage = self.stage
-        pts, seq = [], []
-        for i, row in enumerate(self.rows):
-            moves = stage.moves(int(row), int(row) + 1)
-            moves.w_end = self.programmed[i:i + 1]
-            if i > 0:
-                moves.w_start = self.programmed[i - 1:i]
-            b = self.path.bead_points(moves)
-            pts.append(b)
-            seq.append(np.full(len(b), i, dtype=np.int64))
-        return np.concatenate(pts) if pts else np.zeros((0, 3)), np.concatenate(seq) if seq else np.zeros(0, np.int64)
+    def _programmed_beads(self) -> tuple[np.ndarray, np.ndarray]:
+        """The beads (m, 3) of the levels' programmed moves (the first from the row before as it
+        will be written), in laying order, and the level of each (m,): ``PathChecker.bead_points``
+        of all the moves in one batch (a move's beads do not depend on the others of its batch),
+        each move one sample long, so that a bead's sequence number is its move's index."""
+        moves = self.stage.moves(self.first, self.last + 1)
+        start = moves.w_start.copy()
+        start[1:] = self.programmed[:-1]
+        moves = Moves(start, self.programmed, moves.tcp, moves.known_start, moves.deposit, moves.arc)
+        path = self.path
+        ws = np.where(moves.known_start[:, None], moves.w_start, moves.w_end)
+        Ps, Ns, _ = path.forward(ws, moves.tcp)
+        Pe, Ne, _ = path.forward(moves.w_end, moves.tcp)
+        n = len(moves)
+        pts, seq, _ = path._beads(moves, ws, Ps, Pe, Ns, Ne, np.ones(n, dtype=np.int64), np.arange(n, dtype=np.int64), 0)
+        return pts, np.asarray(seq, dtype=np.int64)
 
     # -- the machine -----------------------------------------------------------------------------
     def point(self, level: np.ndarray, N: np.ndarray) -> np.ndarray:
@@ -193,7 +198,8 @@ class Episode:
             return out
         idx = np.nonzero(ok)[0]
         lv = np.asarray(level)[idx]
-        P = self.path.forward(words[idx], self.tcp[lv])[0]
+        # A tool-vector machine's P is its XYZ words (``ToolVector.forward``): no rotations to compute.
+        P = words[idx, :3] if isinstance(self.kin, ToolVector) else self.path.forward(words[idx], self.tcp[lv])[0]
         C = P + self.h * (N[idx] / np.linalg.norm(N[idx], axis=1, keepdims=True))
         pts, seq = (self.bead_pts, self.bead_seq) if beads else (self.bead_pts[:0], self.bead_seq[:0])
         out[idx] = self.checker.poses_free(C, R[idx], lv.astype(np.int64), self.stage.store, pts, seq)
