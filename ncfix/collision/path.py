@@ -245,15 +245,20 @@ class PathChecker:
         angle = np.pi * t[flip]
         words[flip, 3:6] = np.cos(angle)[:, None] * a + np.sin(angle)[:, None] * half_turn_direction(a)
 
-    def bead_points(self, moves: Moves, radii: bool = False):
+    def bead_points(self, moves: Moves, radii: bool = False, movers: bool = False):
         """The beads the moves lay (m, 3), as ``check`` lays them (for committing without a check);
         with ``radii`` (beads, radius of each (m,) or None: all the bead radius), which
-        ``BeadStore.add`` and ``check``'s ``prior`` take."""
+        ``BeadStore.add`` and ``check``'s ``prior`` take; with ``movers`` (beads, index of the
+        move that lays each (m,)). A move's beads do not depend on the other moves given."""
         ws = np.where(moves.known_start[:, None], moves.w_start, moves.w_end)
         Ps, Ns, _ = self.forward(ws, moves.tcp)
         Pe, Ne, _ = self.forward(moves.w_end, moves.tcp)
-        ones = np.ones(len(moves), dtype=np.int64)
-        pend, _, pend_r = self._beads(moves, ws, Ps, Pe, Ns, Ne, ones, np.zeros(len(moves), dtype=np.int64), 0)
+        n = len(moves)
+        # Each move one sample long: a bead's sequence number is then its move's index.
+        first = np.arange(n, dtype=np.int64) if movers else np.zeros(n, dtype=np.int64)
+        pend, seq, pend_r = self._beads(moves, ws, Ps, Pe, Ns, Ne, np.ones(n, dtype=np.int64), first, 0)
+        if movers:
+            return pend, np.asarray(seq, dtype=np.int64)
         return (pend, pend_r) if radii else pend
 
     def _beads(self, moves: Moves, ws, Ps, Pe, Ns, Ne, m, first, seq0):

@@ -23,7 +23,6 @@ from ncfix.correct.candidates import SphereGrid, level_candidates, nearest
 from ncfix.correct.graph import LayeredGraph
 from ncfix.geometry.frames import angle_between_deg, minimal_rotation, turn_rotations
 from ncfix.kinematics.base import Unreachable
-from ncfix.kinematics.tool_vector import ToolVector
 
 if TYPE_CHECKING:
     from ncfix.config import Options
@@ -131,20 +130,12 @@ class Episode:
 
     def _programmed_beads(self) -> tuple[np.ndarray, np.ndarray]:
         """The beads (m, 3) of the levels' programmed moves (the first from the row before as it
-        will be written), in laying order, and the level of each (m,): ``PathChecker.bead_points``
-        of all the moves in one batch (a move's beads do not depend on the others of its batch),
-        each move one sample long, so that a bead's sequence number is its move's index."""
+        will be written), in laying order, and the level of each (m,): one batch of moves."""
         moves = self.stage.moves(self.first, self.last + 1)
         start = moves.w_start.copy()
         start[1:] = self.programmed[:-1]
-        moves = Moves(start, self.programmed, moves.tcp, moves.known_start, moves.deposit, moves.arc)
-        path = self.path
-        ws = np.where(moves.known_start[:, None], moves.w_start, moves.w_end)
-        Ps, Ns, _ = path.forward(ws, moves.tcp)
-        Pe, Ne, _ = path.forward(moves.w_end, moves.tcp)
-        n = len(moves)
-        pts, seq, _ = path._beads(moves, ws, Ps, Pe, Ns, Ne, np.ones(n, dtype=np.int64), np.arange(n, dtype=np.int64), 0)
-        return pts, np.asarray(seq, dtype=np.int64)
+        return self.path.bead_points(Moves(start, self.programmed, moves.tcp, moves.known_start, moves.deposit,
+                                           moves.arc), movers=True)
 
     # -- the machine -----------------------------------------------------------------------------
     def point(self, level: np.ndarray, N: np.ndarray) -> np.ndarray:
@@ -199,7 +190,7 @@ class Episode:
         idx = np.nonzero(ok)[0]
         lv = np.asarray(level)[idx]
         # A tool-vector machine's P is its XYZ words (``ToolVector.forward``): no rotations to compute.
-        P = words[idx, :3] if isinstance(self.kin, ToolVector) else self.path.forward(words[idx], self.tcp[lv])[0]
+        P = words[idx, :3] if self.is_vector else self.path.forward(words[idx], self.tcp[lv])[0]
         C = P + self.h * (N[idx] / np.linalg.norm(N[idx], axis=1, keepdims=True))
         pts, seq = (self.bead_pts, self.bead_seq) if beads else (self.bead_pts[:0], self.bead_seq[:0])
         out[idx] = self.checker.poses_free(C, R[idx], lv.astype(np.int64), self.stage.store, pts, seq)
