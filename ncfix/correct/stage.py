@@ -369,12 +369,7 @@ class CorrectStage:
                         return
                     self._commit(span_end - self.ramp)
                     break
-                f = int(colliding[0])
-                e = f
-                for c in colliding[1:]:
-                    if c - e > self.gap:
-                        break
-                    e = int(c)
+                f, e = int(colliding[0]), self._episode_end(colliding)
                 if e + self.gap >= span_end and span_end < n:
                     span_end = min(n, e + self.gap + 1 + self.window)
                     continue  # the episode may go on: look further
@@ -438,21 +433,23 @@ class CorrectStage:
         return MoveHits(d.part_hit[a:b].copy(), d.deposit_hit[a:b].copy(), d.deposit_clearance[a:b].copy(),
                         sample, d.C[a:b].copy(), d.R[a:b].copy(), samples), known
 
-    def _closed(self, a: int, s: int) -> bool:
-        """Whether rows a..s-1 (every one with a current result) hold a whole episode: a colliding
-        row whose chain of colliding rows (each at most ``gap`` after the one before, as
-        ``_advance`` chains them) ends ``gap`` or more rows before s. ``_advance`` then finds the
-        same episode, whatever the rows from s on hold."""
-        d = self.detected
-        colliding = a + np.nonzero(d.part_hit[a:s].any(axis=1) | d.deposit_hit[a:s])[0]
-        if not len(colliding):
-            return False
+    def _episode_end(self, colliding: np.ndarray) -> int:
+        """The last row of the episode that starts at colliding[0]: the chain of colliding rows
+        (ascending) each at most ``gap`` after the one before."""
         e = int(colliding[0])
         for c in colliding[1:]:
             if c - e > self.gap:
                 break
             e = int(c)
-        return e + self.gap < s
+        return e
+
+    def _closed(self, a: int, s: int) -> bool:
+        """Whether rows a..s-1 (every one with a current result) hold a whole episode: its chain
+        (``_episode_end``) ends ``gap`` or more rows before s. ``_advance`` then finds the same
+        episode, whatever the rows from s on hold."""
+        d = self.detected
+        colliding = a + np.nonzero(d.part_hit[a:s].any(axis=1) | d.deposit_hit[a:s])[0]
+        return len(colliding) > 0 and self._episode_end(colliding) + self.gap < s
 
     def _detecting(self, a: int, b: int):
         """A progress hook for the detection of rows a..b-1: it moves the bar over the first half
